@@ -1,0 +1,48 @@
+"""The ``sweeper`` command line. Each subcommand lives in its own module, which provides
+``add_arguments(parser)`` and ``run(args) -> int``; modules are imported only when their
+subcommand runs, so ``sweeper --help`` stays light (no torch, Ray or MuJoCo)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: subcommand -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "launch": ("sweeper.launch", "run (or resume) a study from a YAML spec"),
+    "status": ("sweeper.status", "per-method ledger of a study: done, running, failed, left"),
+    "dashboard": ("sweeper.dashboard", "open optuna-dashboard on a study's storage"),
+    "aggregate": ("sweeper.aggregate", "per-method curves, AUC table, figures and report"),
+    "diagnose": ("sweeper.diagnose", "encoder diagnostics (thesis chapter 5) on an env"),
+}
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser; only ``command``'s module is imported to add its arguments."""
+    parser = argparse.ArgumentParser(
+        prog="sweeper",
+        description="Fair sweeps comparing reward encoders for goal-conditioned RL from images.",
+    )
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module_name, help_text) in COMMANDS.items():
+        sub = subparsers.add_parser(name, help=help_text, description=help_text)
+        if name == command:
+            importlib.import_module(module_name).add_arguments(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    command = next((a for a in argv if not a.startswith("-")), None)
+    if command not in COMMANDS:
+        command = None
+    args = build_parser(command).parse_args(argv)
+    if args.command is None:
+        build_parser().print_help()
+        return 2
+    return int(importlib.import_module(COMMANDS[args.command][0]).run(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
