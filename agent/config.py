@@ -1,9 +1,27 @@
-"""Typed, frozen configuration of one trial: the env, the reward method, SAC, the budget."""
+"""Typed, frozen values in and out of one trial: the env, the reward method, SAC, the budget,
+and the result. Numeric fields are checked at construction; a bad value raises a ValueError
+naming its field. Names (env, method) are checked by ``agent.train`` against the registries.
+"""
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
+
+
+def _check(ok: bool, name: str, must: str, value: Any) -> None:
+    if not ok:
+        raise ValueError(f"{name} must be {must}, got {value!r}")
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
 
 
 @dataclass(frozen=True)
@@ -23,6 +41,31 @@ class SACConfig:
     num_filters: int = 32
     image_pad: int = 4  # DrQ augmentation: replicate-pad then random crop back
 
+    def __post_init__(self) -> None:
+        sizes = self.hidden_sizes
+        _check(
+            isinstance(sizes, tuple | list) and len(sizes) > 0 and all(map(_is_int, sizes)),
+            "sac.hidden_sizes",
+            "a non-empty sequence of positive integers",
+            sizes,
+        )
+        _check(all(s > 0 for s in sizes), "sac.hidden_sizes", "positive", sizes)
+        object.__setattr__(self, "hidden_sizes", tuple(sizes))  # lists from YAML/JSON
+        for name in ("discount", "critic_tau"):
+            v = getattr(self, name)
+            _check(_is_number(v) and 0 < v <= 1, f"sac.{name}", "a number in (0, 1]", v)
+        for name in ("init_temperature", "lr"):
+            v = getattr(self, name)
+            _check(_is_number(v) and v > 0, f"sac.{name}", "a positive number", v)
+        for name in ("actor_update_every", "batch_size", "buffer_capacity", "feature_dim"):
+            v = getattr(self, name)
+            _check(_is_int(v) and v >= 1, f"sac.{name}", "an integer >= 1", v)
+        for name in ("updates_per_step", "image_pad"):
+            v = getattr(self, name)
+            _check(_is_int(v) and v >= 0, f"sac.{name}", "an integer >= 0", v)
+        _check(_is_int(self.num_filters) and self.num_filters >= 1, "sac.num_filters",
+               "an integer >= 1", self.num_filters)  # fmt: skip
+
 
 @dataclass(frozen=True)
 class TrialConfig:
@@ -30,7 +73,8 @@ class TrialConfig:
 
     ``method`` is an encoder registry name, or "state" for the state oracle (SAC on
     true states and goals, reward = the env's true reward). ``encoder_params`` are the
-    method's own hyperparameters (latent size, VAE beta, ...).
+    method's own hyperparameters (latent size, VAE beta, ...). Checkpoints are written at
+    the first episode end at least ``checkpoint_every`` env steps after the previous one.
     """
 
     env: str = "point_reach"
@@ -48,3 +92,47 @@ class TrialConfig:
     checkpoint_dir: str | None = None  # None: no checkpoints
     checkpoint_every: int = 5_000
     env_kwargs: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.sac, SACConfig), "sac", "a SACConfig", self.sac)
+        for name in ("total_steps", "eval_every", "eval_episodes", "threads", "checkpoint_every"):
+            v = getattr(self, name)
+            _check(_is_int(v) and v >= 1, name, "an integer >= 1", v)
+        for name in ("seed_steps", "seed"):
+            v = getattr(self, name)
+            _check(_is_int(v) and v >= 0, name, "an integer >= 0", v)
+        _check(self.image_size is None or _is_int(self.image_size), "image_size",
+               "an integer or None", self.image_size)  # fmt: skip
+        for name in ("encoder_params", "env_kwargs"):
+            v = getattr(self, name)
+            _check(isinstance(v, dict), name, "a dict", v)
+        _check(
+            isinstance(self.device, str)
+            and (self.device in ("auto", "cpu", "cuda") or self.device.startswith("cuda:")),
+            "device",
+            "'auto', 'cpu', 'cuda' or 'cuda:N'",
+            self.device,
+        )
+
+
+Outcome = Literal["completed", "diverged"]
+
+
+@dataclass(frozen=True)
+class TrialResult:
+    """What ``agent.train`` returns: the whole evaluation curve and its normalised AUC.
+
+    ``metrics[k][i]`` is metric ``k`` at env step ``steps[i]``. After a divergence the
+    remaining grid points hold ``success_rate = 0`` and NaN for the other metrics.
+    ``seconds`` is the wall time summed over every run of the trial (resumes included);
+    ``resumed_from`` the env step of the checkpoint this run started from, if any.
+    """
+
+    steps: tuple[int, ...]
+    metrics: dict[str, tuple[float, ...]]
+    auc: float
+    outcome: Outcome = "completed"
+    diverged_step: int | None = None
+    diverged_loss: str | None = None
+    seconds: float = 0.0
+    resumed_from: int | None = None

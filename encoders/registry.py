@@ -17,6 +17,11 @@ from encoders.base import RewardEncoder
 #: name -> "module:Class"; the module is imported on first use
 _ENTRY_POINTS: dict[str, str] = {
     "pixel": "encoders.pixel:PixelEncoder",
+    "linear": "encoders.linear:LinearEncoder",
+    "conv": "encoders.conv:ConvEncoder",
+    "vae": "encoders.vae:VAEEncoder",
+    "cvae": "encoders.vae:CVAEEncoder",
+    "vgg": "encoders.vgg:VGGEncoder",
 }
 
 

@@ -169,7 +169,7 @@ class GoalImageEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._apply_action(check_action(action, self.action_space))
         self._elapsed += 1
         info = self._info()
-        reward = -float(info["distance"])
+        reward = self.true_reward(self.controllable_state(), self.goal_state())
         truncated = self._elapsed >= EPISODE_STEPS
         return self._observation(), reward, False, truncated, info
 

@@ -1,0 +1,197 @@
+"""fetch_reach and fetch_push: gymnasium-robotics ``FetchReach-v4`` / ``FetchPush-v4`` seen
+through a camera, with a rendered goal image.
+
+The simulation, reset and action handling are gymnasium-robotics' own (the v4 classes,
+built directly); this module adds the goal image, the controllable state and the
+camera. The action is the 3-D end-effector displacement in [-1, 1] (x 5 cm, as in
+Fetch); the gripper dimension is dropped and the gripper stays blocked.
+
+Goal boxes (``state_bounds()``), with g0 the gripper position after Fetch's reset:
+- fetch_reach: gripper xyz in g0 +- 0.15 m (FetchReach-v4's box), except z in
+  [g0z - 0.10, g0z + 0.15]: v4's lowest goals lie inside the table top (z = 0.40) and
+  cannot be reached or shown.
+- fetch_push: object xyz with xy in g0 +- 0.15 m and z = the object's resting height
+  (FetchPush-v4's box).
+Goals are drawn uniformly from the box, again if they would be reached at the start.
+Success: distance < 0.05 m (Fetch's threshold).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+
+from agent.envs import _mujoco as mj
+
+SUCCESS_DISTANCE = 0.05
+#: physics steps per drive iteration when moving the gripper to a set position
+_DRIVE_SUBSTEPS = 20
+#: default view: from the front of the table, slightly to the right and above, so the
+#: whole goal box, the block in every corner and the raised gripper stay in view
+DEFAULT_CAMERA: dict[str, Any] = {
+    "lookat": [1.3, 0.75, 0.58],
+    "distance": 1.25,
+    "azimuth": 170.0,
+    "elevation": -40.0,
+}
+
+
+def _quiet_import() -> contextlib.AbstractContextManager:
+    """gymnasium_robotics prints a notice about Adroit envs to stderr on import, in every
+    worker; it does not concern Fetch."""
+    return contextlib.redirect_stderr(io.StringIO())
+
+
+class _FetchImageEnv(mj.MujocoGoalImageEnv):
+    """Shared Fetch logic; subclasses choose the gymnasium-robotics class and the goal."""
+
+    metric_names: ClassVar[tuple[str, ...]] = ("is_success", "distance")
+    mocap_body: ClassVar[str] = "robot0:mocap"
+    default_image_size: ClassVar[int] = 84
+    min_image_size: ClassVar[int] = 32
+
+    def __init__(
+        self,
+        image_size: int | None = None,
+        obs_mode: str = "image",
+        render_mode: str | None = "rgb_array",
+        camera: str | Mapping[str, Any] | None = None,
+    ) -> None:
+        super().__init__(image_size=image_size, obs_mode=obs_mode, render_mode=render_mode)
+        self._sim = self._make_sim()
+        self.model, self.data = self._sim.model, self._sim.data
+        self._init_camera(camera, DEFAULT_CAMERA)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
+        self._object_qpos = self._object_qvel = slice(0, 0)
+        if self._sim.has_object:
+            joint = self.model.joint("object0:joint")
+            self._object_qpos = slice(joint.qposadr[0], joint.qposadr[0] + 7)
+            self._object_qvel = slice(joint.dofadr[0], joint.dofadr[0] + 6)
+        self._g0 = self._sim.initial_gripper_xpos.copy()
+        self._goal = np.zeros(3)
+
+    def _make_sim(self) -> Any:
+        raise NotImplementedError
+
+    # ---- simulator --------------------------------------------------------------------
+    def _reset_sim(self, rng: np.random.Generator) -> None:
+        self._sim.np_random = rng  # Fetch's own reset (object placement) draws from our rng
+        self._sim.reset()
+        mj.sync_mocap(self.model, self.data)
+        # unlike v4, never start an episode already at the goal
+        low, high = self.state_bounds()
+        start = self.controllable_state()
+        self._goal = rng.uniform(low, high)
+        while np.linalg.norm(self._goal - start) < SUCCESS_DISTANCE:
+            self._goal = rng.uniform(low, high)
+
+    def _apply_action(self, action: np.ndarray) -> None:
+        # Fetch's step re-syncs the mocap, applies the action, steps 20 substeps and
+        # re-blocks the gripper with an mj_forward, so the data is consistent afterwards.
+        self._sim.step(np.append(action, 0.0))
+
+    def gripper_position(self) -> np.ndarray:
+        """The gripper (grip site) position, world xyz."""
+        return self.data.site("robot0:grip").xpos.copy()
+
+    def set_gripper_position(self, xyz: np.ndarray) -> np.ndarray:
+        """Move only the arm so the gripper sits at ``xyz``; return the position reached.
+
+        The arm starts from Fetch's reset posture each time, so the image is a function
+        of the positions alone (the 7-joint arm could otherwise end in other postures).
+        Objects stay where they are.
+        """
+        target = mj.check_vector(xyz, 3, "xyz")
+        qpos = self._sim.initial_qpos.copy()
+        object_qpos = self.data.qpos[self._object_qpos].copy()
+        qpos[self._object_qpos] = object_qpos
+        self.data.qpos[:] = qpos
+        self.data.qvel[:] = 0.0
+        self.data.qacc_warmstart[:] = 0.0
+        mj.sync_mocap(self.model, self.data)
+
+        def hold() -> None:
+            self._sim._step_callback()  # keep the gripper blocked, as Fetch's step does
+            self.data.qpos[self._object_qpos] = object_qpos
+            self.data.qvel[self._object_qvel] = 0.0
+
+        mj.drive_mocap(
+            self.model, self.data, self.gripper_position, target, _DRIVE_SUBSTEPS, hold, 0.02
+        )
+        return self.gripper_position()
+
+    # ---- goals and metrics ------------------------------------------------------------
+    def _metrics(self) -> dict[str, float]:
+        distance = float(np.linalg.norm(self.controllable_state() - self._goal))
+        return {"is_success": float(distance < SUCCESS_DISTANCE), "distance": distance}
+
+
+class FetchReachImageEnv(_FetchImageEnv):
+    """Move the gripper to a goal position (FetchReach-v4). Goal: gripper xyz."""
+
+    state_names: ClassVar[tuple[str, ...]] = ("gripper_x", "gripper_y", "gripper_z")
+
+    def _make_sim(self) -> Any:
+        with _quiet_import():
+            from gymnasium_robotics.envs.fetch.reach import MujocoFetchReachEnv
+        return MujocoFetchReachEnv(reward_type="dense")
+
+    def _state_dims(self) -> tuple[int, int]:
+        return 3, 3
+
+    def _task_state(self) -> np.ndarray:
+        return self.gripper_position()
+
+    def controllable_state(self) -> np.ndarray:
+        return self.gripper_position()
+
+    def set_controllable_state(self, state: np.ndarray) -> np.ndarray:
+        return self.set_gripper_position(mj.check_vector(state, 3, "state"))
+
+    def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._g0 - [0.15, 0.15, 0.10], self._g0 + 0.15
+
+
+class FetchPushImageEnv(_FetchImageEnv):
+    """Push a block to a goal position on the table (FetchPush-v4). Goal: object xyz.
+
+    ``gripper_position()`` / ``set_gripper_position(xyz)`` move the arm only.
+    """
+
+    state_names: ClassVar[tuple[str, ...]] = ("object_x", "object_y", "object_z")
+
+    def _make_sim(self) -> Any:
+        with _quiet_import():
+            from gymnasium_robotics.envs.fetch.push import MujocoFetchPushEnv
+        return MujocoFetchPushEnv(reward_type="dense")
+
+    def _state_dims(self) -> tuple[int, int]:
+        return 9, 3  # gripper xyz, object xyz, object - gripper
+
+    def _task_state(self) -> np.ndarray:
+        grip, obj = self.gripper_position(), self.controllable_state()
+        return np.concatenate([grip, obj, obj - grip])
+
+    def controllable_state(self) -> np.ndarray:
+        return self.data.site("object0").xpos.copy()
+
+    def set_controllable_state(self, state: np.ndarray) -> np.ndarray:
+        """Place the block at ``state`` (upright, at rest); the arm does not move."""
+        xyz = mj.check_vector(state, 3, "state")
+        self.data.qpos[self._object_qpos] = np.concatenate([xyz, [1.0, 0.0, 0.0, 0.0]])
+        self.data.qvel[self._object_qvel] = 0.0
+        mujoco.mj_forward(self.model, self.data)
+        return self.controllable_state()
+
+    def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        z = self._sim.height_offset
+        return (
+            np.array([self._g0[0] - 0.15, self._g0[1] - 0.15, z]),
+            np.array([self._g0[0] + 0.15, self._g0[1] + 0.15, z]),
+        )

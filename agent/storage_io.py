@@ -1,0 +1,86 @@
+"""Checkpoint bytes in a local directory or at an object-store URI.
+
+A trial retried on another node must find its checkpoint, so the checkpoint location is
+either a directory every node mounts (NFS, a Docker volume) or a URI that every node
+reaches (``s3://bucket/prefix``, ``gs://...``, any fsspec URL). Local paths need nothing
+extra; a URI scheme needs its fsspec backend installed (``pip install s3fs`` for ``s3://``).
+
+Writes are atomic either way: a reader sees the old bytes or the new ones, never a torn
+file. Locally that is a temporary file in the same directory, fsync, rename; an object
+store commits an object only when its upload completes.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import Any
+
+_URI_RE = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
+
+
+def is_uri(location: str) -> bool:
+    """True for ``scheme://...`` locations other than ``file://``."""
+    return bool(_URI_RE.match(location)) and not location.startswith("file://")
+
+
+def _local(location: str) -> Path:
+    return Path(location.removeprefix("file://"))
+
+
+def _filesystem(uri: str) -> tuple[Any, str]:
+    import fsspec  # only for URIs: local checkpoints need no extra package
+
+    try:
+        return fsspec.core.url_to_fs(uri)
+    except (ImportError, ValueError) as e:
+        raise ValueError(f"checkpoint location {uri!r}: {e}") from None
+
+
+def join(location: str, *parts: str) -> str:
+    """``location`` with ``parts`` appended, keeping a URI a URI (``Path`` would mangle ``//``)."""
+    if is_uri(location):
+        return "/".join([location.rstrip("/"), *(p.strip("/") for p in parts)])
+    return str(_local(location).joinpath(*parts))
+
+
+def read_bytes(location: str) -> bytes | None:
+    """The bytes at ``location``, or None if there is nothing there."""
+    if not is_uri(location):
+        try:
+            return _local(location).read_bytes()
+        except FileNotFoundError:
+            return None
+    fs, path = _filesystem(location)
+    try:
+        return fs.cat_file(path)
+    except FileNotFoundError:
+        return None
+
+
+def write_bytes_atomic(location: str, data: bytes) -> None:
+    """Write ``data`` at ``location`` atomically, creating parent directories."""
+    if is_uri(location):
+        fs, path = _filesystem(location)
+        fs.pipe_file(path, data)  # one object upload: visible only once complete
+        return
+    path = _local(location)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    # fsync the directory too, so the rename itself survives a crash
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)

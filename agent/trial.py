@@ -1,0 +1,342 @@
+"""One trial: env + reward encoder + SAC-DrQ, evaluated on a fixed step grid.
+
+``train(config, report)`` runs ``config.total_steps`` env steps: ``seed_steps`` with
+uniform random actions, then ``updates_per_step`` SAC updates after every env step. At
+every grid step (``agent.metrics.evaluation_grid``) it runs ``eval_episodes``
+deterministic-policy episodes in a separate env on a fixed set of goals and calls
+``report(step, metrics)``.
+
+Rewards: an image method's reward ``-||phi(o') - phi(o_g)||`` is computed when the
+transition is stored (``phi(o_g)`` once per episode); the state oracle (``method="state"``)
+uses the env's true reward on state observations.
+
+Checkpoints are written only at episode ends: the next thing the trial does is reset
+the env, so no mid-episode simulator state is needed, only the env's random generator.
+A checkpoint holds the networks, optimisers, replay, counters, the curve so far, and the
+torch and numpy random states; resuming from it gives the same curve on CPU. Each
+checkpoint carries a SHA-256 digest of its contents: a truncated or corrupt file is
+ignored with a warning. Learned encoders are fitted again on resume (deterministic given
+the seed) rather than saved, so no encoder needs a serialisation API.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import encoders
+from agent.config import TrialConfig, TrialResult
+from agent.envs import make_env
+from agent.envs.base import EPISODE_STEPS
+from agent.metrics import (
+    diverged_metrics,
+    evaluation_grid,
+    metric_key,
+    normalized_auc,
+    summarize_episodes,
+)
+from agent.replay import ReplayBuffer
+from agent.sac import SAC
+
+Report = Callable[[int, dict[str, float]], None]
+CHECKPOINT_NAME = "checkpoint.pt"
+CHECKPOINT_FORMAT = 1
+DEFAULT_NUM_IMAGES = 1000
+# config fields that do not change the curve: a checkpoint stays valid across them
+_RUN_ONLY_FIELDS = ("device", "threads", "checkpoint_dir", "checkpoint_every")
+
+
+class Diverged(Exception):
+    """A loss became NaN or infinite."""
+
+    def __init__(self, step: int, loss: str) -> None:
+        super().__init__(f"{loss} is not finite at env step {step}")
+        self.step, self.loss = step, loss
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r} requested but CUDA is not available")
+    return torch.device(name)
+
+
+def _seed(seed: int, stream: int) -> int:
+    """An independent seed for one use (training env, evaluation episodes, ...)."""
+    return int(np.random.SeedSequence([seed, stream]).generate_state(1)[0])
+
+
+def _uniform_action(env: Any, rng: np.random.Generator) -> np.ndarray:
+    space = env.action_space
+    return rng.uniform(space.low, space.high).astype(space.dtype)
+
+
+def build_encoder(config: TrialConfig, image_size: int, device: torch.device) -> Any:
+    """The trial's reward encoder, fitted on random-policy frames when it learns."""
+    if config.method not in encoders.encoder_names():
+        names = ", ".join((*encoders.encoder_names(), "state"))
+        raise ValueError(f"method must be one of {names}; got {config.method!r}")
+    shape = (image_size, image_size, 3)
+    encoder = encoders.make_encoder(
+        config.method, shape, config.seed, str(device), **config.encoder_params
+    )
+    if encoder.needs_fit:
+        num_images = getattr(encoder, "num_images", None) or config.encoder_params.get(
+            "num_images", DEFAULT_NUM_IMAGES
+        )
+        encoder.fit(collect_random_images(config, int(num_images)), progress=False)
+    return encoder
+
+
+def collect_random_images(config: TrialConfig, num_images: int) -> np.ndarray:
+    """``num_images`` frames seen by a uniform random policy in the trial's env."""
+    env = make_env(config.env, image_size=config.image_size, **config.env_kwargs)
+    rng = np.random.default_rng(_seed(config.seed, 2))
+    frames = []
+    obs, _ = env.reset(seed=_seed(config.seed, 3))
+    while len(frames) < num_images:
+        frames.append(obs["image"])
+        obs, _, terminated, truncated, _ = env.step(_uniform_action(env, rng))
+        if terminated or truncated:
+            obs, _ = env.reset()
+    env.close()
+    return np.stack(frames)
+
+
+def evaluate(agent: SAC, env: Any, seeds: list[int], keys: tuple[str, str]) -> dict[str, float]:
+    """Deterministic-policy episodes, one per seed; metrics from each final step's info."""
+    finals = []
+    for seed in seeds:
+        obs, info = env.reset(seed=seed)
+        done = False
+        while not done:
+            action = agent.act(obs[keys[0]], obs[keys[1]], sample=False)
+            obs, _, terminated, truncated, info = env.step(action)
+            done = terminated or truncated
+        finals.append(info)
+    return summarize_episodes(finals, env.metric_names)
+
+
+# ---- checkpoint files -------------------------------------------------------------------
+def _digest(obj: Any) -> str:
+    """SHA-256 over every value in a nested checkpoint (tensors by their bytes)."""
+    h = hashlib.sha256()
+
+    def visit(x: Any) -> None:
+        if isinstance(x, torch.Tensor):
+            x = x.detach().cpu().contiguous()
+            h.update(f"T{x.dtype}{tuple(x.shape)}".encode())
+            h.update(x.reshape(-1).view(torch.uint8).numpy())
+        elif isinstance(x, dict):
+            h.update(f"D{len(x)}".encode())
+            for k in sorted(x, key=repr):
+                h.update(repr(k).encode())
+                visit(x[k])
+        elif isinstance(x, list | tuple):
+            h.update(f"L{len(x)}".encode())
+            for v in x:
+                visit(v)
+        else:
+            h.update(repr(x).encode())
+
+    visit(obj)
+    return h.hexdigest()
+
+
+def _to_tensors(obj: Any) -> Any:
+    """numpy arrays -> tensors (no copy), so the file loads with ``weights_only=True``."""
+    if isinstance(obj, np.ndarray):
+        return torch.from_numpy(obj)
+    if isinstance(obj, dict):
+        return {k: _to_tensors(v) for k, v in obj.items()}
+    return obj
+
+
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """Write ``state`` atomically: temp file, fsync, rename, fsync the directory."""
+    state = _to_tensors(state)
+    state["digest"] = _digest(state)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as f:
+        torch.save(state, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def load_checkpoint(path: Path, config: TrialConfig) -> dict[str, Any] | None:
+    """The checkpoint at ``path`` if it exists and is intact, else None (with a warning).
+
+    A checkpoint of a different trial config is an error: resuming it would mix two trials.
+    """
+    if not path.exists():
+        return None
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        digest = state.pop("digest")
+        if state.get("format") != CHECKPOINT_FORMAT or digest != _digest(state):
+            raise ValueError("digest or format mismatch")
+    except Exception as exc:
+        warnings.warn(f"ignoring corrupt checkpoint {path}: {exc}", stacklevel=3)
+        return None
+    if state["config"] != _config_key(config):
+        raise ValueError(
+            f"checkpoint_dir {str(path.parent)!r} holds a checkpoint of another trial config; "
+            "give each trial its own checkpoint_dir"
+        )
+    return state
+
+
+def _config_key(config: TrialConfig) -> str:
+    fields = dataclasses.asdict(config)
+    for name in _RUN_ONLY_FIELDS:
+        fields.pop(name)
+    return repr(fields)
+
+
+# ---- the trial ----------------------------------------------------------------------------
+def train(config: TrialConfig, report: Report | None = None) -> TrialResult:
+    """Run one trial (see the module docstring); ``report(step, metrics)`` sees each
+    evaluation, and again every evaluation restored from a checkpoint."""
+    start = time.perf_counter()
+    torch.set_num_threads(config.threads)
+    device = resolve_device(config.device)
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(_seed(config.seed, 0))  # random actions, replay sampling
+
+    state_mode = config.method == "state"
+    obs_mode = "state" if state_mode else "image"
+    keys = ("state", "goal_state") if state_mode else ("image", "goal_image")
+    make = dict(image_size=config.image_size, obs_mode=obs_mode, **config.env_kwargs)
+    env, eval_env = make_env(config.env, **make), make_env(config.env, **make)
+    encoder = None if state_mode else build_encoder(config, env.image_size, device)
+    env.reset(seed=_seed(config.seed, 1))  # seeds the env's generator; episodes reset() below
+    eval_seeds = [_seed(config.seed, 100 + i) for i in range(config.eval_episodes)]
+    obs_space, goal_space = env.observation_space[keys[0]], env.observation_space[keys[1]]
+    action_dim = env.action_space.shape[0]
+
+    agent = SAC(obs_space.shape, goal_space.shape, action_dim, config.sac, device)
+    replay = ReplayBuffer(
+        capacity=min(config.sac.buffer_capacity, config.total_steps),
+        obs_shape=obs_space.shape,
+        obs_dtype=obs_space.dtype,
+        goal_shape=goal_space.shape,
+        action_dim=action_dim,
+        episode_steps=EPISODE_STEPS,
+    )
+    grid = evaluation_grid(config.total_steps, config.eval_every)
+    grid_set = set(grid)
+    metric_keys = tuple(metric_key(name) for name in env.metric_names)
+    curve: dict[str, list[float]] = {"step": []}
+
+    def record(step: int, metrics: dict[str, float]) -> None:
+        curve["step"].append(step)
+        for k, v in metrics.items():
+            curve.setdefault(k, []).append(v)
+        if report is not None:
+            report(step, metrics)
+
+    # resume: restore everything, re-report the curve so far
+    step, seconds_before, resumed_from = 0, 0.0, None
+    path = Path(config.checkpoint_dir) / CHECKPOINT_NAME if config.checkpoint_dir else None
+    saved = load_checkpoint(path, config) if path is not None else None
+    if saved is not None:
+        step = resumed_from = int(saved["step"])
+        seconds_before = float(saved["seconds"])
+        agent.load_state_dict(saved["agent"])
+        replay.load_state_dict({k: v.numpy() if isinstance(v, torch.Tensor) else v
+                                for k, v in saved["replay"].items()})  # fmt: skip
+        torch.set_rng_state(saved["torch_rng"])
+        rng.bit_generator.state = saved["numpy_rng"]
+        env.np_random.bit_generator.state = saved["env_rng"]
+        for i, s in enumerate(saved["curve"]["step"]):
+            record(int(s), {k: float(v[i]) for k, v in saved["curve"].items() if k != "step"})
+    last_checkpoint = step
+
+    def checkpoint() -> None:
+        save_checkpoint(path, {
+            "format": CHECKPOINT_FORMAT,
+            "config": _config_key(config),
+            "step": step,
+            "seconds": seconds_before + time.perf_counter() - start,
+            "curve": {k: list(v) for k, v in curve.items()},
+            "agent": agent.state_dict(),
+            "replay": replay.state_dict(),
+            "torch_rng": torch.get_rng_state(),
+            "numpy_rng": rng.bit_generator.state,
+            "env_rng": env.np_random.bit_generator.state,
+        })  # fmt: skip
+
+    outcome, diverged = "completed", None
+    if step == 0:
+        record(0, evaluate(agent, eval_env, eval_seeds, keys))
+    episode_done, goal_latent = True, None
+    try:
+        while step < config.total_steps:
+            if episode_done:
+                obs, _ = env.reset()
+                replay.start_episode(obs[keys[0]], obs[keys[1]])
+                if encoder is not None:
+                    goal_latent = encoder.encode(obs[keys[1]][None])
+            if step < config.seed_steps:
+                action = _uniform_action(env, rng)
+            else:
+                action = agent.act(obs[keys[0]], obs[keys[1]], sample=True)
+            obs, reward, terminated, truncated, _ = env.step(action)
+            if encoder is not None:
+                reward = float(
+                    encoders.latent_reward(encoder.encode(obs[keys[0]][None]), goal_latent)[0]
+                )
+            replay.add(action, reward, obs[keys[0]])
+            step += 1
+
+            if step >= config.seed_steps:
+                for _ in range(config.sac.updates_per_step):
+                    losses = agent.update(replay.sample(config.sac.batch_size, rng))
+                    for name, loss in losses.items():
+                        if not torch.isfinite(loss):
+                            raise Diverged(step, name)
+
+            if step in grid_set:
+                record(step, evaluate(agent, eval_env, eval_seeds, keys))
+            episode_done = terminated or truncated
+            due = step - last_checkpoint >= config.checkpoint_every and step < config.total_steps
+            if episode_done and due and path is not None:
+                checkpoint()
+                last_checkpoint = step
+    except Diverged as exc:
+        outcome, diverged = "diverged", exc
+        for s in grid:
+            if s > curve["step"][-1]:
+                record(s, diverged_metrics(metric_keys))
+    finally:
+        env.close()
+        eval_env.close()
+
+    metrics = {k: tuple(v) for k, v in curve.items() if k != "step"}
+    return TrialResult(
+        steps=tuple(curve["step"]),
+        metrics=metrics,
+        auc=normalized_auc(curve["step"], metrics["success_rate"]),
+        outcome=outcome,
+        diverged_step=diverged.step if diverged else None,
+        diverged_loss=diverged.loss if diverged else None,
+        seconds=seconds_before + time.perf_counter() - start,
+        resumed_from=resumed_from,
+    )

@@ -1,0 +1,117 @@
+"""Concurrency benchmark: the same small point_reach study with 1 and 2 trials at once.
+
+    .venv/bin/python benchmarks/bench_concurrency.py [--trials 4] [--env-steps 1500]
+
+Each run is a real ``sweeper launch`` (a subprocess: Python and torch imports, a local Ray,
+the study database, the worker actors, the driver loop) on a fresh SQLite study in a
+temporary directory. For a run with ``c`` trials at once it prints:
+
+- ``wall``: seconds from starting ``sweeper launch`` to its exit (W);
+- ``in trials``: the sum over trials of the time each trial measured inside
+  ``agent.train`` (``TrialResult.seconds``, stored as the ``seconds`` user attr) (S);
+- ``overhead = 1 - S / (c * W)``: the share of the run's ``c`` trial slots' time that was
+  spent outside trials: start-up (imports, Ray, database), dispatching, writing results,
+  idle slots while the last trials finish, shut-down. It is the orchestration cost; it
+  does not count two trials slowing each other down by sharing the CPU (that shows in S);
+- ``startup``: seconds from start to the first trial's start (Optuna's ``datetime_start``)
+  and ``tail``: from the last trial's end (``datetime_complete``) to the exit: the fixed
+  part of the overhead, which a longer study amortises;
+- ``speed-up`` (for c = 2): W(c=1) / W(c=2).
+
+The target is an overhead under 5%. With few, short trials the fixed start-up dominates, so
+raise ``--env-steps`` (trial length) to see the steady-state figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_study(workdir: Path, trials: int, env_steps: int, concurrency: int) -> dict[str, float]:
+    """Launch the study with ``concurrency`` trials at once; return its figures."""
+    import optuna
+
+    from sweeper.spec import load_yaml
+
+    study = f"bench_concurrency_c{concurrency}"
+    spec = load_yaml((REPO / "studies" / "ci.yaml").read_text())  # tiny point_reach trials
+    spec.update(study=study, methods={"pixel": {}}, trials_per_method=trials)
+    eval_every = max(50, env_steps // 5 // 50 * 50)
+    spec["budget"].update(env_steps=env_steps, eval_every=eval_every)
+    spec["execution"].update(max_concurrent=concurrency, checkpoint_every=env_steps)
+    spec_path = workdir / f"{study}.yaml"
+    spec_path.write_text(yaml.safe_dump(spec))
+    env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
+    start_wall = time.time()
+    start = time.perf_counter()
+    result = subprocess.run(
+        [sys.executable, "-m", "sweeper.cli", "launch", str(spec_path)],
+        cwd=workdir,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=3600,
+    )
+    wall = time.perf_counter() - start
+    if result.returncode != 0:
+        sys.exit(f"sweeper launch failed (exit {result.returncode}):\n{result.stderr}")
+    storage = f"sqlite:///{workdir / 'runs' / study / 'study.db'}"
+    done = optuna.load_study(study_name=study, storage=storage).get_trials(deepcopy=False)
+    complete = [t for t in done if t.state == optuna.trial.TrialState.COMPLETE]
+    if len(complete) != trials:
+        sys.exit(f"expected {trials} complete trials, found {len(complete)}")
+    in_trials = sum(float(t.user_attrs["seconds"]) for t in complete)
+    first_start = min(t.datetime_start.timestamp() for t in complete)
+    last_end = max(t.datetime_complete.timestamp() for t in complete)
+    return {
+        "concurrency": concurrency,
+        "wall": wall,
+        "in_trials": in_trials,
+        "overhead": 1.0 - in_trials / (concurrency * wall),
+        "startup": first_start - start_wall,
+        "tail": start_wall + wall - last_end,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--trials", type=int, default=4, help="trials in the study (default 4)")
+    parser.add_argument(
+        "--env-steps", type=int, default=1500, help="env steps per trial (default 1500)"
+    )
+    args = parser.parse_args()
+    print(
+        f"studies/ci.yaml (point_reach 32x32) as pixel only, {args.trials} trials x "
+        f"{args.env_steps} env steps, {os.cpu_count()} CPUs"
+    )
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_concurrency_") as tmp:
+        for concurrency in (1, 2):
+            workdir = Path(tmp) / f"c{concurrency}"
+            workdir.mkdir()
+            rows.append(run_study(workdir, args.trials, args.env_steps, concurrency))
+            row = rows[-1]
+            print(
+                f"c={concurrency}: wall {row['wall']:7.1f} s | in trials {row['in_trials']:7.1f} s"
+                f" | overhead {100 * row['overhead']:5.1f}% | startup {row['startup']:5.1f} s"
+                f" | tail {row['tail']:4.1f} s",
+                flush=True,
+            )
+    speedup = rows[0]["wall"] / rows[1]["wall"]
+    print(f"speed-up c=2 vs c=1: {speedup:.2f}x")
+    worst = max(row["overhead"] for row in rows)
+    print(f"orchestration overhead: max {100 * worst:.1f}% (target < 5%)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,69 @@
+"""CONV: a randomly initialised DrQ conv stack plus one Linear layer, never trained.
+
+``drq_conv_stack`` and ``conv_output_size`` are the DrQ image encoder's conv layers,
+shared with the agent (``agent`` may import ``encoders``, never the reverse).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from encoders.torch_base import TorchEncoder, check_positive, seeded
+
+#: DrQ: four 3x3 convs, strides 2, 1, 1, 1, no padding, ReLU after each
+DRQ_STRIDES = (2, 1, 1, 1)
+
+
+def conv_output_size(image_size: int) -> int:
+    """Side of the DrQ conv stack's output map for a square input (84 -> 35, 48 -> 17)."""
+    size = image_size
+    for stride in DRQ_STRIDES:
+        size = (size - 3) // stride + 1
+    if size < 1:
+        raise ValueError(f"image size {image_size} is too small for the DrQ conv stack")
+    return size
+
+
+def drq_conv_stack(in_channels: int = 3, num_filters: int = 32) -> nn.Sequential:
+    """The DrQ conv layers (input: float images in [0, 1]; output: [N, num_filters, s, s]
+    with ``s = conv_output_size(H)``). Default PyTorch initialisation."""
+    layers: list[nn.Module] = []
+    for i, stride in enumerate(DRQ_STRIDES):
+        layers += [nn.Conv2d(in_channels if i == 0 else num_filters, num_filters, 3, stride)]
+        layers += [nn.ReLU()]
+    return nn.Sequential(*layers)
+
+
+class ConvEncoder(TorchEncoder):
+    """``phi(o) = Linear(flatten(drq_conv_stack(o / 255)))`` to ``latent_dim``, random weights
+    from ``seed``: 32 filters, 84x84 -> 32x35x35 -> latent_dim, 48x48 -> 32x17x17 -> latent_dim.
+    """
+
+    name = "conv"
+    num_filters = 32
+
+    def __init__(
+        self,
+        image_shape: tuple[int, int, int],
+        seed: int,
+        device: str = "cpu",
+        latent_dim: int = 128,
+    ) -> None:
+        super().__init__(image_shape, seed, device)
+        self.latent_dim = int(check_positive("latent_dim", latent_dim, int))
+        h, w, c = self.image_shape
+        flat = self.num_filters * conv_output_size(h) * conv_output_size(w)
+        with seeded(self.seed):
+            self.net = nn.Sequential(
+                drq_conv_stack(c, self.num_filters),
+                nn.Flatten(),
+                nn.Linear(flat, self.latent_dim),
+            ).to(self.torch_device)
+
+    @property
+    def dim(self) -> int:
+        return self.latent_dim
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)

@@ -1,0 +1,34 @@
+"""Encoder diagnostics (thesis chapter 5): how well does a latent reward reflect the task?
+
+Each analysis takes an env with the controllable-state API (``agent.envs.base.GoalImageEnv``;
+this package never imports ``agent``) and a ``{name: encoder}`` mapping, renders each
+state once for all encoders, and returns tidy pandas tables (``encoder, metric, value``
+plus analysis columns). ``plots`` draws them. ``sweeper diagnose`` runs them all.
+"""
+
+from encoders.diagnostics.correlation import reward_correlation
+from encoders.diagnostics.exploration import random_exploration, random_frames
+from encoders.diagnostics.gradient import (
+    cosine_distance,
+    gradient_agreement,
+    least_squares_gradient,
+    random_directions,
+    true_reward_gradient,
+)
+from encoders.diagnostics.topology import default_grid_dims, grid_topology
+from encoders.diagnostics.variance import arm_object_variance, has_arm
+
+__all__ = [
+    "arm_object_variance",
+    "cosine_distance",
+    "default_grid_dims",
+    "gradient_agreement",
+    "grid_topology",
+    "has_arm",
+    "least_squares_gradient",
+    "random_directions",
+    "random_exploration",
+    "random_frames",
+    "reward_correlation",
+    "true_reward_gradient",
+]

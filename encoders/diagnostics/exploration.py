@@ -1,0 +1,67 @@
+"""How often a uniformly random agent reaches the goal: the exploration difficulty of a task."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from encoders.diagnostics.common import ControllableEnv, Progress
+
+
+def random_exploration(
+    env: ControllableEnv,
+    episodes: int = 100,
+    steps: int = 50,
+    seed: int = 0,
+    progress: bool = True,
+) -> pd.DataFrame:
+    """Share of ``episodes`` random-action episodes of ``steps`` steps in which the goal is
+    reached at any step.
+
+    "Reached" means any ``*success`` flag in ``info`` is set (for the door: the angle or
+    the hand success, as well as both). Rows (encoder ``"none"``): ``success_rate`` and
+    ``<flag>_rate`` for every success flag of the env (e.g. ``is_success_rate``).
+    """
+    env.action_space.seed(seed)
+    hits: dict[str, list[bool]] = {}
+    bar = Progress("random agent episodes", episodes, progress)
+    for episode in range(episodes):
+        env.reset(seed=seed + episode)
+        reached: dict[str, bool] = {}
+        for _ in range(steps):
+            _, _, _, _, info = env.step(env.action_space.sample())
+            for key, value in info.items():
+                if key.endswith("success"):
+                    reached[key] = reached.get(key, False) or bool(value)
+        for key, value in reached.items():
+            hits.setdefault(key, []).append(value)
+        hits.setdefault("success", []).append(any(reached.values()))
+        bar.update(episode + 1)
+    keys = ["success", *(k for k in hits if k != "success")]
+    rows = [
+        {"encoder": "none", "metric": f"{k}_rate", "value": float(np.mean(hits[k]))} for k in keys
+    ]
+    return pd.DataFrame(rows)
+
+
+def random_frames(
+    env: ControllableEnv, num_images: int, seed: int = 0, progress: bool = True
+) -> np.ndarray:
+    """``num_images`` camera frames (uint8 [N,H,W,3]) seen by a uniformly random policy in
+    episodes of 50 steps: what the learned encoders are fit on."""
+    env.action_space.seed(seed)
+    bar = Progress("random-policy frames", num_images, progress)
+    frames: list[np.ndarray] = []
+    episode = 0
+    while len(frames) < num_images:
+        env.reset(seed=seed + episode)
+        episode += 1
+        frames.append(env.render_image())
+        for _ in range(49):
+            if len(frames) >= num_images:
+                break
+            env.step(env.action_space.sample())
+            frames.append(env.render_image())
+            bar.update(len(frames))
+    bar.update(num_images)
+    return np.stack(frames[:num_images])

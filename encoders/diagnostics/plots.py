@@ -1,0 +1,116 @@
+"""PNG figures of the diagnostics tables (matplotlib, Agg backend, no display needed)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _grid(n: int, width: float = 4.0, height: float = 3.5, cols: int = 3):
+    plt = _pyplot()
+    cols = min(cols, n)
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(width * cols, height * rows), squeeze=False)
+    for ax in axes.flat[n:]:
+        ax.set_visible(False)
+    return fig, axes.flat
+
+
+def _save(fig, path: Path, title: str) -> Path:
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    _pyplot().close(fig)
+    return path
+
+
+def plot_exploration(table: pd.DataFrame, path: Path, title: str) -> Path:
+    """Bar chart of the random agent's success rates."""
+    fig, (ax,) = _grid(1, 5, 3.5)
+    ax.bar(table["metric"], table["value"], color="tab:blue", label="random agent")
+    ax.set_xlabel("success flag reached at any step")
+    ax.set_ylabel("share of episodes")
+    ax.set_ylim(0, 1)
+    ax.legend()
+    return _save(fig, path, title)
+
+
+def plot_gradient(table: pd.DataFrame, path: Path, title: str) -> Path:
+    """Box plot of the per-state cosine distances, one box per encoder."""
+    names = list(dict.fromkeys(table["encoder"]))
+    fig, (ax,) = _grid(1, max(4.0, 1.2 * len(names)), 3.5)
+    data = [table.loc[table["encoder"] == n, "value"].to_numpy() for n in names]
+    ax.boxplot(data, tick_labels=names, showmeans=True)
+    ax.axhline(1.0, color="gray", linestyle="--", label="orthogonal (no agreement)")
+    ax.set_xlabel("encoder")
+    ax.set_ylabel("cosine distance to true gradient")
+    ax.set_ylim(0, 2)
+    ax.legend(loc="upper right")
+    return _save(fig, path, title)
+
+
+def plot_correlation(pairs: pd.DataFrame, summary: pd.DataFrame, path: Path, title: str) -> Path:
+    """Scatter of latent vs true reward, one panel per encoder, with Pearson and Spearman."""
+    names = list(dict.fromkeys(pairs["encoder"]))
+    fig, axes = _grid(len(names))
+    for ax, name in zip(axes, names, strict=False):
+        p = pairs[pairs["encoder"] == name]
+        s = summary[summary["encoder"] == name].set_index("metric")["value"]
+        ax.scatter(p["true_reward"], p["latent_reward"], s=6, alpha=0.5, label="(state, goal)")
+        ax.set_title(f"{name}: pearson {s['pearson']:.2f}, spearman {s['spearman']:.2f}")
+        ax.set_xlabel("true reward -||s - g||")
+        ax.set_ylabel("latent reward -||phi(o) - phi(o_g)||")
+        ax.legend(loc="best")
+    return _save(fig, path, title)
+
+
+def plot_topology(embedding: pd.DataFrame, path: Path, title: str, labels: tuple[str, str]) -> Path:
+    """Isomap embeddings of the grid latents, coloured by each grid coordinate."""
+    plt = _pyplot()
+    names = list(dict.fromkeys(embedding["encoder"]))
+    fig, axes = plt.subplots(len(names), 2, figsize=(9, 3.8 * len(names)), squeeze=False)
+    for row, name in zip(axes, names, strict=True):
+        e = embedding[embedding["encoder"] == name]
+        for ax, column, label in zip(row, ("state_a", "state_b"), labels, strict=True):
+            points = ax.scatter(e["iso_x"], e["iso_y"], c=e[column], cmap="viridis", s=14)
+            fig.colorbar(points, ax=ax, label=label)
+            ax.set_title(f"{name}: coloured by {label}")
+            ax.set_xlabel("isomap 1")
+            ax.set_ylabel("isomap 2")
+    return _save(fig, path, title)
+
+
+def plot_variance(table: pd.DataFrame, path: Path, title: str) -> Path:
+    """Per-dimension latent variance, arm moving vs object moving, one panel per encoder."""
+    per_dim = table[table["dim"] >= 0]
+    names = list(dict.fromkeys(per_dim["encoder"]))
+    fig, axes = _grid(len(names))
+    for ax, name in zip(axes, names, strict=False):
+        t = per_dim[per_dim["encoder"] == name]
+        arm = t.loc[t["metric"] == "arm_variance", "value"].to_numpy()
+        obj = t.loc[t["metric"] == "object_variance", "value"].to_numpy()
+        # a floor lets the log axes show dimensions with zero variance
+        floor = max(float(np.concatenate([arm, obj]).max()) * 1e-9, 1e-30)
+        ax.scatter(obj + floor, arm + floor, s=8, alpha=0.6, label="latent dimension")
+        both = np.concatenate([arm, obj]) + floor
+        lim = [float(both.min()), float(both.max())]
+        ax.plot(lim, lim, color="gray", linestyle="--", label="equal variance")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_title(name)
+        ax.set_xlabel("variance, only the object moves")
+        ax.set_ylabel("variance, only the arm moves")
+        ax.legend(loc="upper left")
+    return _save(fig, path, title)

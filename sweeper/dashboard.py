@@ -1,0 +1,124 @@
+"""``sweeper dashboard SPEC``: serve optuna-dashboard on the study's storage.
+
+The server reads the same database the driver writes (SQLite in WAL mode, so a live study
+can be watched), and shows what ``sweeper aggregate`` saved into the study: the per-method
+curves and AUC figures, and the comparison table in the study note. It binds to
+127.0.0.1 by default: the dashboard can edit notes and delete studies, so expose it
+beyond this machine only on purpose (``--host 0.0.0.0``). Ctrl-C or SIGTERM stops it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from typing import Any
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``sweeper dashboard``."""
+    parser.add_argument("spec", help="the study spec, a YAML file (see studies/)")
+    parser.add_argument(
+        "--storage",
+        metavar="URL",
+        help="SQLAlchemy URL of the study database, overriding the spec's",
+    )
+    parser.add_argument(
+        "--host", default="127.0.0.1", help="address to listen on (default: 127.0.0.1)"
+    )
+    parser.add_argument(
+        "--port",
+        type=_port,
+        default=8080,
+        help="port to listen on; 0 picks a free one (default: 8080)",
+    )
+
+
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"must be an integer in [0, 65535], got {text!r}"
+        ) from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"must be an integer in [0, 65535], got {port}")
+    return port
+
+
+def run(args: argparse.Namespace) -> int:
+    """``sweeper dashboard``: serve until stopped; exit 0, or 2 on a bad spec or storage."""
+    from sweeper.spec import load_spec
+
+    try:
+        spec = load_spec(args.spec)
+        if args.storage is not None:
+            spec = spec.with_overrides(storage=args.storage)
+        return serve(spec.storage_url, spec.study, args.host, args.port)
+    except ValueError as e:  # SpecError, StorageError, no such study
+        print(f"sweeper dashboard: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # the port is taken, the host is not ours
+        print(f"sweeper dashboard: cannot listen on {args.host}:{args.port}: {e}", file=sys.stderr)
+        return 2
+
+
+def serve(
+    storage_url: str,
+    study_name: str,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    ready: Callable[[str], None] | None = None,
+) -> int:
+    """Serve optuna-dashboard for ``storage_url`` until Ctrl-C or SIGTERM; return 0.
+
+    ``ready(url)`` is called with the study's page once the server listens (default: print
+    it on stdout). Raises ValueError when the storage does not hold ``study_name``.
+    """
+    from socketserver import ThreadingMixIn
+    from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
+
+    import optuna
+    import optuna_dashboard
+
+    from sweeper.storage import StudyStore, open_storage, redact, resolve_url, sqlite_path
+
+    path = sqlite_path(resolve_url(storage_url))
+    if path is not None and not path.is_file():
+        raise ValueError(f"storage: no database file at {path}: launch the study first")
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    storage = open_storage(storage_url)
+    store = StudyStore.find(storage, study_name)
+    if store is None:
+        raise ValueError(f"study {study_name!r} not found in {redact(storage_url)}")
+
+    class Server(ThreadingMixIn, WSGIServer):
+        daemon_threads = True  # a slow browser request never blocks shutdown
+
+    class QuietHandler(WSGIRequestHandler):
+        def log_message(self, format: str, *args: Any) -> None:  # one line per request: noise
+            pass
+
+    app = optuna_dashboard.wsgi(storage)
+    server = make_server(host, port, app, server_class=Server, handler_class=QuietHandler)
+    url = f"http://{host}:{server.server_port}/dashboard/studies/{store.study_id}"
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt) if main_thread else None
+    try:
+        (ready or (lambda u: print(f"optuna-dashboard: {u}  (Ctrl-C stops it)", flush=True)))(url)
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+        server.server_close()
+        storage.remove_session()
+        storage.engine.dispose()
+    return 0
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt

@@ -1,0 +1,312 @@
+"""``sweeper diagnose``: the encoder diagnostics of thesis chapter 5 on one or more envs.
+
+    sweeper diagnose --env point_reach --encoders pixel,linear,conv
+    sweeper diagnose --env fetch_push --encoders pixel,cvae --option cvae.epochs=5
+
+For each env it writes, under ``--out`` (default ``runs/diagnostics/{env}``), one tidy CSV
+per analysis (``env, encoder, metric, value, ...``), a PNG figure each, and
+``summary.csv`` with the headline figures. Learned encoders are first fit on
+``num_images`` frames of a uniformly random policy in the env. Heavy imports happen in
+``run`` so ``sweeper --help`` stays light.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import sys
+from pathlib import Path
+from typing import Any
+
+ANALYSES = ("exploration", "gradient", "correlation", "topology", "variance")
+
+
+class UsageError(ValueError):
+    """A bad argument: reported in one line, exit code 2."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
+    parser.epilog = "Writes one CSV and PNG per analysis and summary.csv per env."
+    parser.add_argument("--env", required=True, help="env name(s), comma-separated")
+    parser.add_argument(
+        "--encoders", default="pixel,linear,conv", help="encoder names, comma-separated"
+    )
+    parser.add_argument(
+        "--option",
+        action="append",
+        default=[],
+        metavar="ENCODER.KEY=VALUE",
+        help="an encoder option, e.g. cvae.latent_dim=8 or vgg.weights_path=vgg16.pth (repeatable)",
+    )
+    parser.add_argument(
+        "--analyses", default=",".join(ANALYSES), help=f"subset of {', '.join(ANALYSES)}"
+    )
+    parser.add_argument(
+        "--out", default="runs/diagnostics/{env}", help="output directory; {env} is the env name"
+    )
+    parser.add_argument("--image-size", type=int, default=None, help="default: the env's")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--episodes", type=int, default=100, help="random-agent episodes")
+    parser.add_argument("--gradient-states", type=int, default=50, help="Algorithm 1 states")
+    parser.add_argument("--directions", type=int, default=16, help="Algorithm 1 directions")
+    parser.add_argument("--alpha", type=float, default=0.03, help="Algorithm 1 step size")
+    parser.add_argument("--pairs", type=int, default=300, help="(state, goal) pairs")
+    parser.add_argument("--grid-size", type=int, default=15, help="topology grid side")
+    parser.add_argument(
+        "--grid-dims", default=None, help="two state names or indices (default: first two)"
+    )
+    parser.add_argument(
+        "--variance-states", type=int, default=100, help="arm-vs-object states (fetch_push)"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def split(text: str, what: str) -> list[str]:
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    if not items:
+        raise UsageError(f"{what} must name at least one item")
+    return items
+
+
+def parse_options(pairs: list[str], encoder_names: list[str]) -> dict[str, dict[str, Any]]:
+    """``["vae.beta=5", ...]`` -> ``{"vae": {"beta": 5}}``; values are Python literals or
+    plain strings."""
+    options: dict[str, dict[str, Any]] = {name: {} for name in encoder_names}
+    for pair in pairs:
+        key, sep, raw = pair.partition("=")
+        encoder, dot, option = key.partition(".")
+        if not sep or not dot or not option:
+            raise UsageError(f"--option must look like ENCODER.KEY=VALUE, got {pair!r}")
+        if encoder not in options:
+            raise UsageError(
+                f"--option {pair!r} is for {encoder!r}, which is not in --encoders "
+                f"({', '.join(encoder_names)})"
+            )
+        try:
+            value = ast.literal_eval(raw)
+        except (ValueError, SyntaxError):
+            value = raw
+        options[encoder][option] = value
+    return options
+
+
+def grid_dims(text: str | None, state_names: tuple[str, ...]) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    dims = split(text, "--grid-dims")
+    indices = []
+    for d in dims:
+        if d in state_names:
+            indices.append(state_names.index(d))
+        elif d.isdigit() and int(d) < len(state_names):
+            indices.append(int(d))
+        else:
+            raise UsageError(f"--grid-dims: unknown state {d!r}; states: {', '.join(state_names)}")
+    if len(indices) != 2 or indices[0] == indices[1]:
+        raise UsageError(f"--grid-dims needs two different states, got {text!r}")
+    return indices[0], indices[1]
+
+
+def check_sizes(args: argparse.Namespace) -> None:
+    for name in ("episodes", "gradient_states", "directions", "pairs", "variance_states"):
+        if getattr(args, name) < 1:
+            raise UsageError(f"--{name.replace('_', '-')} must be positive")
+    if args.pairs < 3:
+        raise UsageError("--pairs must be at least 3")
+    if args.grid_size < 5:
+        raise UsageError("--grid-size must be at least 5")
+    if not args.alpha > 0:
+        raise UsageError("--alpha must be positive")
+
+
+def setup(args: argparse.Namespace) -> tuple[list[str], list[tuple[str, Any, dict, Path]]]:
+    """Validate everything before any work: (analyses, [(env name, env, encoders, out dir)])."""
+    from agent.envs import check_env_name, make_env
+    from encoders import make_encoder
+    from encoders.registry import encoder_class
+
+    check_sizes(args)
+    envs = split(args.env, "--env")
+    names = split(args.encoders, "--encoders")
+    analyses = split(args.analyses, "--analyses")
+    for a in analyses:
+        if a not in ANALYSES:
+            raise UsageError(f"unknown analysis {a!r}; analyses: {', '.join(ANALYSES)}")
+    for env in envs:
+        check_env_name(env)
+    for name in names:
+        encoder_class(name)
+    options = parse_options(args.option, names)
+    built: list[tuple[str, Any, dict[str, Any], Path]] = []
+    try:
+        for env_name in envs:
+            try:
+                env = make_env(env_name, image_size=args.image_size, obs_mode="state")
+            except ImportError as err:
+                raise UsageError(f"env {env_name!r} is not available here: {err}") from err
+            encoders: dict[str, Any] = {}
+            built.append((env_name, env, encoders, out_dir(args.out, env_name, len(envs))))
+            grid_dims(args.grid_dims, tuple(env.state_names))  # fail now, not after the work
+            shape = (env.image_size, env.image_size, 3)
+            for n in names:
+                encoders[n] = make_encoder(n, shape, args.seed, args.device, **options[n])
+    except ValueError:
+        close_all(built)
+        raise
+    return analyses, built
+
+
+def out_dir(template: str, env_name: str, num_envs: int) -> Path:
+    """``--out`` for one env: ``{env}`` is replaced; several envs without it get subfolders."""
+    if "{env}" in template:
+        return Path(template.replace("{env}", env_name))
+    return Path(template) / env_name if num_envs > 1 else Path(template)
+
+
+def close_all(built: list[tuple[str, Any, dict[str, Any], Path]]) -> None:
+    for _, env, _, _ in built:
+        env.close()
+
+
+def diagnose_env(
+    args: argparse.Namespace,
+    analyses: list[str],
+    env_name: str,
+    env: Any,
+    encoders: dict[str, Any],
+    out: Path,
+) -> list[Any]:
+    """Fit the learned encoders, run the analyses, write CSV + PNG; return summary frames."""
+    import pandas as pd
+
+    from encoders import diagnostics as dx
+    from encoders.diagnostics import plots
+
+    progress = not args.quiet
+    out.mkdir(parents=True, exist_ok=True)
+    frames: dict[int, Any] = {}  # by count: VAE and CVAE share their frames
+    for name, encoder in encoders.items():
+        if encoder.needs_fit:
+            n = encoder.num_images
+            if n not in frames:
+                frames[n] = dx.random_frames(env, n, args.seed, progress)
+            log(args, f"{env_name}: fitting {name} on {n} random-policy frames")
+            encoder.fit(frames[n], progress=progress)
+
+    def write(table: pd.DataFrame, stem: str) -> pd.DataFrame:
+        table = table.copy()
+        table.insert(0, "env", env_name)
+        table.to_csv(out / f"{stem}.csv", index=False)
+        return table
+
+    summary = []
+    todo = analyses
+    if "exploration" in todo:
+        t = write(
+            dx.random_exploration(env, args.episodes, seed=args.seed, progress=progress),
+            "exploration",
+        )
+        plots.plot_exploration(t, out / "exploration.png", f"{env_name}: random agent")
+        summary.append(t.assign(analysis="exploration"))
+    if "gradient" in todo:
+        t = write(
+            dx.gradient_agreement(
+                env,
+                encoders,
+                args.gradient_states,
+                args.directions,
+                args.alpha,
+                seed=args.seed,
+                progress=progress,
+            ),
+            "gradient",
+        )
+        plots.plot_gradient(
+            t, out / "gradient.png", f"{env_name}: latent vs true reward gradient (Algorithm 1)"
+        )
+        means = t.groupby("encoder", sort=False)["value"].agg(["mean", "median"]).reset_index()
+        for stat in ("mean", "median"):
+            summary.append(
+                pd.DataFrame(
+                    {
+                        "env": env_name,
+                        "encoder": means["encoder"],
+                        "metric": f"{stat}_cosine_distance",
+                        "value": means[stat],
+                        "analysis": "gradient",
+                    }
+                )
+            )
+    if "correlation" in todo:
+        s, pairs = dx.reward_correlation(
+            env, encoders, args.pairs, seed=args.seed, progress=progress
+        )
+        s, pairs = write(s, "correlation"), write(pairs, "correlation_pairs")
+        plots.plot_correlation(
+            pairs, s, out / "correlation.png", f"{env_name}: latent vs true reward"
+        )
+        summary.append(s.assign(analysis="correlation"))
+    if "topology" in todo:
+        dims = grid_dims(args.grid_dims, tuple(env.state_names))
+        s, emb = dx.grid_topology(env, encoders, args.grid_size, dims, progress=progress)
+        s, emb = write(s, "topology"), write(emb, "topology_embedding")
+        a, b = dims or dx.default_grid_dims(env)
+        labels = (env.state_names[a], env.state_names[b])
+        plots.plot_topology(
+            emb,
+            out / "topology.png",
+            f"{env_name}: isomap of a {args.grid_size}x{args.grid_size} state grid",
+            labels,
+        )
+        summary.append(s.assign(analysis="topology"))
+    if "variance" in todo and not dx.has_arm(env):
+        log(args, f"{env_name}: no arm-only control, skipping the variance analysis")
+    elif "variance" in todo:
+        t = write(
+            dx.arm_object_variance(
+                env, encoders, args.variance_states, seed=args.seed, progress=progress
+            ),
+            "variance",
+        )
+        plots.plot_variance(
+            t, out / "variance.png", f"{env_name}: latent variance, arm moving vs object moving"
+        )
+        summary.append(t[t["dim"] < 0].drop(columns="dim").assign(analysis="variance"))
+    return summary
+
+
+def log(args: argparse.Namespace, message: str) -> None:
+    if not args.quiet:
+        print(f"[diagnose] {message}", file=sys.stderr, flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    import pandas as pd
+    import torch
+
+    try:
+        if args.threads < 1:
+            raise UsageError("--threads must be positive")
+        torch.set_num_threads(args.threads)
+        analyses, built = setup(args)
+    except ValueError as err:
+        print(f"sweeper diagnose: error: {err}", file=sys.stderr)
+        return 2
+    try:
+        for env_name, env, encoders, out in built:
+            frames = diagnose_env(args, analyses, env_name, env, encoders, out)
+            print(f"{env_name}: wrote {out}/")
+            if frames:
+                summary = pd.concat(frames, ignore_index=True)
+                summary = summary[["env", "analysis", "encoder", "metric", "value"]]
+                summary.to_csv(out / "summary.csv", index=False)
+                print(summary.to_string(index=False))
+    except ValueError as err:
+        print(f"sweeper diagnose: error: {err}", file=sys.stderr)
+        return 2
+    finally:
+        close_all(built)
+    return 0

@@ -1,0 +1,238 @@
+"""Ray execution: a pool of worker actors, each running one trial at a time.
+
+Workers never touch the database. A worker runs ``agent.train`` (or any function with its
+signature) and buffers what the trial reports; the driver drains the buffers with small
+remote calls and learns of finished, failed and lost trials through ``WorkerPool.poll``.
+An exception inside a trial comes back as a value (message and traceback); a worker that
+dies (killed, out of memory, node lost) comes back as a ``Lost`` event, and the pool
+replaces the actor.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import ray
+
+#: env vars every worker gets: headless MuJoCo rendering
+WORKER_ENV_VARS = {"MUJOCO_GL": "egl"}
+
+
+def start_ray(address: str | None, num_cpus: int | None = None) -> bool:
+    """Connect to Ray; return True if this call started it (so the caller shuts it down).
+
+    ``address=None`` starts a fresh local instance (``address="local"``: a plain
+    ``ray.init()`` would attach to whatever cluster a stale /tmp/ray file names). An
+    already initialised Ray (e.g. in a notebook or a test) is used as it is.
+    """
+    if ray.is_initialized():
+        return False
+    common = {"log_to_driver": False, "logging_level": "WARNING"}
+    if address is None:
+        ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, **common)
+    else:
+        ray.init(address=address, **common)
+    return True
+
+
+@ray.remote
+class TrialWorker:
+    """Runs one trial at a time; a second thread answers ``drain`` while a trial runs."""
+
+    def __init__(self, train: Callable[..., Any] | None = None) -> None:
+        self._train = train
+        self._lock = threading.Lock()
+        self._events: list[tuple[str, Any, Any]] = []
+
+    def run(self, token: str, config: Any) -> dict[str, Any]:
+        """Run ``train(config, report)``; return ``{"result": ...}`` or ``{"error", "traceback"}``."""
+        with self._lock:
+            self._events = []
+        where = {"node": ray.util.get_node_ip_address(), "pid": os.getpid()}
+        self._push(token, "where", where)
+        train = self._train
+        if train is None:
+            from agent import train
+        try:
+            result = train(config, report=lambda step, metrics: self._push(token, step, metrics))
+        except Exception as e:
+            return {"error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc()}
+        return {"result": result}
+
+    def drain(self) -> list[tuple[str, Any, Any]]:
+        """Events since the last drain: ``(token, "where", {...})`` or ``(token, step, metrics)``."""
+        with self._lock:
+            events, self._events = self._events, []
+        return events
+
+    def _push(self, token: str, step: Any, payload: Any) -> None:
+        with self._lock:
+            self._events.append((token, step, dict(payload)))
+
+
+@dataclass(frozen=True)
+class Started:
+    token: str
+    where: dict[str, Any]  # {"node": ip, "pid": worker pid}
+
+
+@dataclass(frozen=True)
+class Reported:
+    token: str
+    step: int
+    metrics: dict[str, float]
+
+
+@dataclass(frozen=True)
+class Finished:
+    token: str
+    result: Any  # what train returned
+
+
+@dataclass(frozen=True)
+class Errored:
+    token: str
+    error: str
+    traceback: str
+
+
+@dataclass(frozen=True)
+class Lost:
+    token: str
+    error: str  # why Ray says the worker is gone
+
+
+Event = Started | Reported | Finished | Errored | Lost
+
+
+@dataclass
+class _Slot:
+    actor: Any
+    token: str | None = None
+    run_ref: Any = None
+    drain_ref: Any = None
+
+
+class WorkerPool:
+    """``size`` actors with ``cpus``/``gpus`` each; one trial per actor at a time."""
+
+    def __init__(
+        self,
+        size: int,
+        cpus: float = 1,
+        gpus: float = 0,
+        train: Callable[..., Any] | None = None,
+    ) -> None:
+        self._options = {
+            "num_cpus": cpus,
+            "num_gpus": gpus,
+            "max_concurrency": 2,  # run + drain
+            "runtime_env": {"env_vars": dict(WORKER_ENV_VARS)},
+        }
+        self._train = train
+        self._slots = [self._new_slot() for _ in range(size)]
+
+    def _new_slot(self) -> _Slot:
+        return _Slot(TrialWorker.options(**self._options).remote(self._train))
+
+    @property
+    def idle(self) -> int:
+        """How many actors have no trial."""
+        return sum(slot.token is None for slot in self._slots)
+
+    @property
+    def busy(self) -> list[str]:
+        """Tokens of the trials in flight."""
+        return [slot.token for slot in self._slots if slot.token is not None]
+
+    def submit(self, token: str, config: Any) -> None:
+        """Start ``config`` on an idle actor; ``token`` names it in the events."""
+        slot = next(slot for slot in self._slots if slot.token is None)
+        slot.token, slot.run_ref = token, slot.actor.run.remote(token, config)
+
+    def poll(self, timeout: float = 1.0) -> list[Event]:
+        """Wait up to ``timeout`` s for a trial to end; return what happened meanwhile.
+
+        Each busy actor has at most one ``drain`` call in flight, collected when it
+        answers, so no report is dropped and a slow actor never blocks the others.
+        """
+        busy = [slot for slot in self._slots if slot.token is not None]
+        if not busy:
+            time.sleep(timeout)
+            return []
+        for slot in busy:
+            if slot.drain_ref is None:
+                slot.drain_ref = slot.actor.drain.remote()
+        refs = [slot.run_ref for slot in busy]
+        ray.wait(refs, num_returns=1, timeout=timeout)
+        done, _ = ray.wait(refs, num_returns=len(refs), timeout=0)
+        events: list[Event] = []
+        for slot in busy:
+            if slot.run_ref in done:  # the trial's last reports come before its end
+                ray.wait([slot.drain_ref], timeout=10)
+            events += self._collect_drain(slot)
+        for index, slot in enumerate(self._slots):
+            if slot.token is None or slot.run_ref not in done:
+                continue
+            token = slot.token
+            try:
+                outcome = ray.get(slot.run_ref)
+            except ray.exceptions.RayError as e:
+                events.append(Lost(token, f"{type(e).__name__}: {_plain(e)}"))
+                ray.kill(slot.actor)
+                self._slots[index] = self._new_slot()
+                continue
+            slot.token, slot.run_ref = None, None
+            if "error" in outcome:
+                events.append(Errored(token, outcome["error"], outcome["traceback"]))
+            else:
+                events.append(Finished(token, outcome["result"]))
+        return events
+
+    def _collect_drain(self, slot: _Slot) -> list[Event]:
+        """The slot's drained events, if its drain call has answered."""
+        ready, _ = ray.wait([slot.drain_ref], timeout=0)
+        if not ready:
+            return []
+        slot.drain_ref = None
+        try:
+            drained = ray.get(ready[0])
+        except ray.exceptions.RayError:
+            return []  # the worker is gone; its run ref says so
+        events: list[Event] = []
+        for token, step, payload in drained:
+            if token != slot.token:
+                continue
+            if step == "where":
+                events.append(Started(token, payload))
+            else:
+                events.append(Reported(token, int(step), payload))
+        return events
+
+    def shutdown(self) -> None:
+        """Kill every actor (a trial in flight stops at once; its checkpoint stays)."""
+        for slot in self._slots:
+            ray.kill(slot.actor)
+        self._slots = []
+
+
+def _plain(error: BaseException, limit: int = 2000) -> str:
+    """Ray's message of ``error`` on one line, without terminal colours."""
+    text = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", str(error)).split())
+    return (text[:limit] + " ...") if len(text) > limit else text or "no message"
+
+
+def resources_fit(cpus: float, gpus: float) -> int:
+    """How many trials of ``cpus``/``gpus`` the connected cluster can hold at once."""
+    total = ray.cluster_resources()
+    fits = int(total.get("CPU", 0) // cpus) if cpus else 1 << 30
+    if gpus:
+        fits = min(fits, int(total.get("GPU", 0) // gpus))
+    return fits

@@ -1,0 +1,406 @@
+"""``sweeper launch SPEC``: run a study, or resume it, on Ray; the driver is the only writer.
+
+The driver validates everything first (spec, env and encoder options, storage URL), so a
+bad input exits with code 2 and writes nothing. Then it creates or loads the study, gives
+every plan key that is not done a WAITING trial (``StudyStore.sync``), and hands the keys
+to a pool of Ray worker actors, one trial per actor at a time. Reports stream back as
+intermediate values; a finished trial is told its AUC.
+
+Failures: a worker that dies is replaced and the trial re-run from its checkpoint, with
+the same parameters and seed, in the same Optuna trial, up to ``execution.retries`` times.
+An exception inside a trial is not retried (a seeded trial fails the same way again): the
+trial is FAIL with ``error`` and ``traceback``, and the next ``sweeper launch`` re-runs it.
+Ctrl-C (or SIGTERM) stops the workers and marks the trials in flight ``interrupted``; a
+relaunch resumes them from their checkpoints. Exit codes: 0 all done, 1 some trials
+failed or another driver runs the study, 2 bad input, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import signal
+import sys
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TextIO
+
+if TYPE_CHECKING:
+    from sweeper.plan import Plan, PlanEntry
+    from sweeper.spec import StudySpec
+    from sweeper.storage import StudyStore
+
+#: seconds between the driver's heartbeats in the study
+HEARTBEAT_SECONDS = 15.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``sweeper launch``."""
+    parser.add_argument("spec", help="the study spec, a YAML file (see studies/)")
+    parser.add_argument(
+        "--storage",
+        metavar="URL",
+        help="SQLAlchemy URL of the study database, overriding the spec's "
+        "(default: sqlite:///runs/<study>/study.db; postgresql://user@host/db for a cluster)",
+    )
+    parser.add_argument(
+        "--address",
+        metavar="ADDR",
+        help="join the Ray cluster at ADDR ('auto', 'host:6379' or 'ray://host:10001') "
+        "instead of starting a local Ray",
+    )
+    parser.add_argument(
+        "--max-concurrent",
+        metavar="N",
+        type=_positive_int,
+        help="trials at once, overriding the spec's execution.max_concurrent",
+    )
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {value}")
+    return value
+
+
+def prepare(
+    path: str,
+    storage: str | None = None,
+    address: str | None = None,
+    max_concurrent: int | None = None,
+) -> tuple[StudySpec, Plan]:
+    """Validate the spec with its overrides, build its plan and check the storage.
+
+    Raises ``SpecError`` or ``StorageError`` (both ValueErrors naming the field); writes
+    nothing anywhere.
+    """
+    from sweeper.plan import build_plan
+    from sweeper.spec import load_spec
+    from sweeper.storage import check_storage
+
+    spec = load_spec(path)
+    if (storage, address, max_concurrent) != (None, None, None):
+        spec = spec.with_overrides(storage=storage, address=address, max_concurrent=max_concurrent)
+    plan = build_plan(spec)
+    check_storage(spec.storage_url)
+    return spec, plan
+
+
+def run(args: argparse.Namespace) -> int:
+    """``sweeper launch``: returns the exit code."""
+    try:
+        spec, plan = prepare(args.spec, args.storage, args.address, args.max_concurrent)
+    except ValueError as e:  # SpecError, StorageError
+        print(f"sweeper launch: {e}", file=sys.stderr)
+        return 2
+    try:
+        return launch(spec, plan)
+    except KeyboardInterrupt:  # before or after the driver loop, which handles its own
+        print("\nsweeper launch: stopped", file=sys.stderr)
+        return 130
+
+
+def study_attrs(spec: StudySpec, plan: Plan) -> dict[str, Any]:
+    """The study user attrs (docs/architecture.md, "Storage conventions")."""
+    from sweeper.storage import code_revision, package_versions
+
+    return {
+        "spec": spec.model_dump(mode="json"),
+        "plan_hash": plan.hash,
+        "plan": plan.keys(),
+        "versions": package_versions(),
+        "revision": code_revision(),
+        "env": spec.env.name,
+        "metric_names": list(report_metric_names(spec.env.name)),
+    }
+
+
+def report_metric_names(env: str) -> tuple[str, ...]:
+    """The metric keys a trial on ``env`` reports (docs/architecture.md, "One trial")."""
+    from agent.envs import ENV_ENTRY_POINTS
+
+    module_name, class_name = ENV_ENTRY_POINTS[env].split(":")
+    env_class = getattr(__import__(module_name, fromlist=[class_name]), class_name)
+    names = []
+    for name in env_class.metric_names:
+        if name == "is_success":
+            names.insert(0, "success_rate")
+        elif name.endswith("_success"):
+            names.append(f"{name}_rate")
+        else:
+            names.append(f"final_{name}")
+    return tuple(names)
+
+
+@dataclass
+class _Job:
+    """A plan entry in flight: its Optuna trial and what it has reported so far."""
+
+    entry: PlanEntry
+    trial_id: int
+    number: int
+    attempts: int = 0
+    deaths: list[str] = field(default_factory=list)
+    points: dict[int, dict[str, float]] = field(default_factory=dict)
+
+    def curve(self) -> dict[str, list[Any]]:
+        """The ``curve`` user attr: columnar, sorted by step, NaN/inf as null."""
+        from sweeper.storage import json_safe
+
+        steps = sorted(self.points)
+        names = list(dict.fromkeys(k for s in steps for k in self.points[s]))
+        columns: dict[str, list[Any]] = {"step": steps}
+        for name in names:
+            columns[name] = json_safe(self.points[s].get(name, float("nan")) for s in steps)
+        return columns
+
+
+class _Interrupted(KeyboardInterrupt):
+    """SIGTERM, handled like Ctrl-C."""
+
+
+def launch(
+    spec: StudySpec,
+    plan: Plan,
+    *,
+    train: Callable[..., Any] | None = None,
+    stream: TextIO | None = None,
+) -> int:
+    """Run (or resume) the study of a validated ``spec``; return the exit code.
+
+    ``train`` replaces ``agent.train`` in the workers (tests). A Ray that is already
+    initialised is used and left running; otherwise one is started (local, or
+    ``spec.execution.address``) and shut down at the end.
+    """
+    import optuna
+
+    from sweeper.progress import Progress
+    from sweeper.storage import StorageError, StudyBusy, StudyStore, open_storage, redact
+
+    stream = sys.stderr if stream is None else stream
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    url = spec.storage_url
+    attrs = study_attrs(spec, plan)
+    storage = open_storage(url)
+    try:
+        store = StudyStore.open_or_create(storage, spec.study, attrs)
+        store.claim_driver()
+    except (StorageError, StudyBusy) as e:
+        print(f"sweeper launch: {e}", file=stream)
+        return 2 if isinstance(e, StorageError) else 1
+    if store.attrs.get("revision") != attrs["revision"]:
+        print(
+            f"sweeper launch: note: the study began at code revision "
+            f"{store.attrs.get('revision')}; this is {attrs['revision']}",
+            file=stream,
+        )
+    try:
+        todo = store.sync(plan.entries, plan.hash)
+        total = len(plan.entries)
+        print(
+            f"study {spec.study!r} in {redact(url)}: {total - len(todo)} of {total} trials "
+            f"done, {len(todo)} to run",
+            file=stream,
+        )
+        if not todo:
+            return 0
+        progress = Progress(spec.study, plan.keys(), spec.budget.env_steps, stream)
+        return _drive(spec, store, todo, progress, train, stream)
+    finally:
+        store.release_driver()
+        storage.remove_session()
+        storage.engine.dispose()
+
+
+def _drive(
+    spec: StudySpec,
+    store: StudyStore,
+    todo: list[tuple[PlanEntry, Any]],
+    progress: Any,
+    train: Callable[..., Any] | None,
+    stream: TextIO,
+) -> int:
+    """The driver loop: dispatch keys to workers, write what comes back."""
+    import ray
+
+    from sweeper.execution import (
+        Errored,
+        Finished,
+        Lost,
+        Reported,
+        Started,
+        WorkerPool,
+        resources_fit,
+        start_ray,
+    )
+
+    execution = spec.execution
+    cpus, gpus = execution.cpus_per_trial, execution.gpus_per_trial
+    concurrency = min(execution.max_concurrent, len(todo))
+    started_ray = start_ray(execution.address, num_cpus=max(1, int(concurrency * cpus + 0.999)))
+    pool = None
+    jobs: dict[str, _Job] = {}
+    previous_handler = _sigterm_to_interrupt()
+    try:
+        fit = resources_fit(cpus, gpus)
+        if fit < 1:
+            print(
+                f"sweeper launch: execution: a trial needs {cpus:g} CPUs and {gpus:g} GPUs, "
+                f"more than the Ray cluster offers ({ray.cluster_resources()})",
+                file=stream,
+            )
+            return 2
+        if fit < concurrency:
+            print(
+                f"sweeper launch: note: the Ray cluster holds {fit} trials at once, "
+                f"not execution.max_concurrent={concurrency}",
+                file=stream,
+            )
+            concurrency = fit
+        pool = WorkerPool(concurrency, cpus=cpus, gpus=gpus, train=train)
+        queue = deque(todo)
+        failed = 0
+        last_beat = time.monotonic()
+        for entry, trial in todo:
+            progress.set_state(entry.key, "left")
+
+        def dispatch(job: _Job) -> None:
+            job.attempts += 1
+            store.set_attrs(job.trial_id, {"attempts": job.attempts})
+            config = job.entry.trial_config
+            if config.checkpoint_dir is not None:  # workers may run in another directory
+                config = dataclasses.replace(
+                    config, checkpoint_dir=str(Path(config.checkpoint_dir).absolute())
+                )
+            pool.submit(job.entry.key, config)
+            progress.set_state(job.entry.key, "running")
+
+        while queue or jobs:
+            while pool.idle and queue:
+                entry, trial = queue.popleft()
+                job = _Job(entry, trial._trial_id, trial.number)
+                store.start(job.trial_id)
+                jobs[entry.key] = job
+                dispatch(job)
+            for event in pool.poll(timeout=1.0):
+                job = jobs[event.token]
+                if isinstance(event, Started):
+                    store.set_attrs(job.trial_id, {"worker": event.where})
+                elif isinstance(event, Reported):
+                    job.points[event.step] = event.metrics
+                    store.report(job.trial_id, {event.step: event.metrics["success_rate"]})
+                    store.set_attrs(job.trial_id, {"curve": job.curve()})
+                    progress.set_step(job.entry.key, event.step)
+                elif isinstance(event, Finished):
+                    _record_result(store, job, event.result)
+                    del jobs[event.token]
+                    outcome = event.result.outcome
+                    progress.set_state(job.entry.key, outcome)
+                    progress.note(f"{job.entry.key} {outcome}: AUC {event.result.auc:.3f}")
+                elif isinstance(event, Errored):
+                    store.fail(
+                        job.trial_id,
+                        {
+                            "outcome": "failed",
+                            "error": event.error,
+                            "traceback": event.traceback,
+                            "curve": job.curve(),
+                        },
+                    )
+                    del jobs[event.token]
+                    failed += 1
+                    progress.set_state(job.entry.key, "failed")
+                    progress.note(f"{job.entry.key} failed: {event.error}")
+                elif isinstance(event, Lost):
+                    job.deaths.append(event.error)
+                    store.set_attrs(job.trial_id, {"worker_deaths": job.deaths})
+                    if job.attempts <= execution.retries:
+                        progress.note(f"{job.entry.key}: worker lost ({event.error}); re-running")
+                        dispatch(job)
+                    else:
+                        error = f"worker died {job.attempts} times; last: {event.error}"
+                        store.fail(
+                            job.trial_id,
+                            {"outcome": "failed", "error": error, "curve": job.curve()},
+                        )
+                        del jobs[event.token]
+                        failed += 1
+                        progress.set_state(job.entry.key, "failed")
+                        progress.note(f"{job.entry.key} failed: {error}")
+            if time.monotonic() - last_beat > HEARTBEAT_SECONDS:
+                store.heartbeat()
+                last_beat = time.monotonic()
+            progress.refresh()
+        progress.refresh(force=True)
+        progress.close()
+        if failed:
+            print(
+                f"sweeper launch: {failed} trial(s) failed (see `sweeper status`); "
+                "launching again re-runs them",
+                file=stream,
+            )
+            return 1
+        return 0
+    except KeyboardInterrupt:
+        if pool is not None:
+            pool.shutdown()
+            pool = None
+        for job in jobs.values():
+            try:
+                store.interrupt(job.trial_id, "stopped by the user", None)
+            except Exception:  # e.g. stopped while it was being told; the next sync reaps it
+                pass
+        progress.close()
+        print(
+            f"\nsweeper launch: stopped; {len(jobs)} trial(s) in flight were interrupted and "
+            "resume from their checkpoints when you launch again",
+            file=stream,
+        )
+        return 130
+    finally:
+        _restore_sigterm(previous_handler)
+        if pool is not None:
+            pool.shutdown()
+        if started_ray:
+            ray.shutdown()
+
+
+def _record_result(store: StudyStore, job: _Job, result: Any) -> None:
+    """Write a finished trial: every grid point, the curve, the outcome, then COMPLETE."""
+    for index, step in enumerate(result.steps):
+        job.points[int(step)] = {name: values[index] for name, values in result.metrics.items()}
+    store.report(job.trial_id, {s: p["success_rate"] for s, p in job.points.items()})
+    attrs: dict[str, Any] = {
+        "outcome": result.outcome,
+        "curve": job.curve(),
+        "seconds": float(result.seconds),
+        "resumed_from": result.resumed_from,
+    }
+    if result.outcome == "diverged":
+        attrs["diverged_step"] = result.diverged_step
+        attrs["diverged_loss"] = result.diverged_loss
+    store.complete(job.trial_id, result.auc, attrs)
+
+
+def _sigterm_to_interrupt() -> Any:
+    """Make SIGTERM stop the driver like Ctrl-C (main thread only); return the old handler."""
+
+    def handler(signum: int, frame: Any) -> None:
+        raise _Interrupted()
+
+    try:
+        return signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        return None
+
+
+def _restore_sigterm(handler: Any) -> None:
+    if handler is not None:
+        signal.signal(signal.SIGTERM, handler)

@@ -1,0 +1,126 @@
+"""The equal-budget plan: the finite, keyed list of trials a study owes.
+
+``trials_per_method`` (K) SAC configurations are sampled once from the SAC search space
+with the study seed and shared by every method (a paired design: config ``c`` of method A
+and config ``c`` of method B differ only in the reward). Each method's own options are
+sampled per config from a generator derived from (study seed, method name), so adding or
+removing a method leaves the others' samples unchanged. Every config runs once per seed.
+
+One ``PlanEntry`` per ``(method, config_id, seed)``; each method has exactly
+``K * len(seeds)`` entries. ``Plan.hash`` fingerprints everything that changes what the
+trials compute (env, budget, every trial's parameters and seed), not where they run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass
+
+from agent.config import SACConfig, TrialConfig
+from sweeper.space import derive_rng, param_value, sample_configs
+from sweeper.spec import StudySpec
+
+#: TrialConfig fields that say where and how a trial runs, not what it computes.
+_RUNTIME_FIELDS = ("device", "threads", "checkpoint_dir", "checkpoint_every")
+
+
+@dataclass(frozen=True)
+class PlanEntry:
+    """One planned trial.
+
+    ``params``: flat Optuna params (SAC fields by name, ``hidden_sizes`` as "256x256",
+    method options as "<method>.<option>"); ``choices``: the categorical choices of each
+    param (one choice for a fixed param); ``trial_config``: what ``agent.train`` runs.
+    """
+
+    method: str
+    config_id: int
+    seed: int
+    key: str
+    params: dict[str, bool | int | float | str]
+    choices: dict[str, tuple[bool | int | float | str, ...]]
+    trial_config: TrialConfig
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The entries sorted by (method, config_id, seed), and the plan's sha256 ``hash``."""
+
+    entries: tuple[PlanEntry, ...]
+    hash: str
+
+    def keys(self) -> list[str]:
+        """The entries' keys ``"{method}/{config_id}/{seed}"``, in plan order."""
+        return [e.key for e in self.entries]
+
+
+def trial_key(method: str, config_id: int, seed: int) -> str:
+    """The key of one trial: ``"{method}/{config_id}/{seed}"``."""
+    return f"{method}/{config_id}/{seed}"
+
+
+def build_plan(spec: StudySpec) -> Plan:
+    """Sample the plan of ``spec``; the same spec always gives the same plan and hash."""
+    sac_space = spec.sac.space()
+    sac_configs = sample_configs(sac_space, spec.trials_per_method, derive_rng(spec.seed, "sac"))
+    sac_choices = {name: tuple(param_value(c) for c in cs) for name, cs in sac_space.items()}
+
+    drafts = []  # (method, config_id, seed, params, choices, TrialConfig without checkpoint_dir)
+    for method in sorted(spec.methods):
+        space = spec.methods[method]
+        method_configs = sample_configs(
+            space, spec.trials_per_method, derive_rng(spec.seed, f"method:{method}")
+        )
+        choices = sac_choices | {f"{method}.{k}": cs for k, cs in space.items()}
+        for config_id, (sac, options) in enumerate(zip(sac_configs, method_configs, strict=True)):
+            params = {name: param_value(v) for name, v in sac.items()}
+            params |= {f"{method}.{k}": v for k, v in options.items()}
+            for seed in sorted(spec.seeds):
+                config = TrialConfig(
+                    env=spec.env.name,
+                    image_size=spec.env.image_size,
+                    method=method,
+                    encoder_params=dict(options),
+                    sac=SACConfig(**sac),
+                    total_steps=spec.budget.env_steps,
+                    seed_steps=spec.budget.seed_steps,
+                    eval_every=spec.budget.eval_every,
+                    eval_episodes=spec.budget.eval_episodes,
+                    seed=seed,
+                    threads=spec.execution.threads_per_trial,
+                    checkpoint_every=spec.execution.checkpoint_every,
+                    env_kwargs=dict(spec.env.options),
+                )
+                drafts.append((method, config_id, seed, params, choices, config))
+
+    canonical = [
+        {
+            "key": trial_key(method, config_id, seed),
+            "params": params,
+            "trial": {
+                k: v for k, v in dataclasses.asdict(config).items() if k not in _RUNTIME_FIELDS
+            },
+        }
+        for method, config_id, seed, params, _, config in drafts
+    ]
+    text = json.dumps({"version": 1, "entries": canonical}, sort_keys=True, separators=(",", ":"))
+    plan_hash = hashlib.sha256(text.encode()).hexdigest()
+
+    entries = tuple(
+        PlanEntry(
+            method=method,
+            config_id=config_id,
+            seed=seed,
+            key=trial_key(method, config_id, seed),
+            params=dict(params),
+            choices=dict(choices),
+            trial_config=dataclasses.replace(
+                config,
+                checkpoint_dir=f"{spec.checkpoint_dir}/{plan_hash[:12]}/{method}/{config_id}/{seed}",
+            ),
+        )
+        for method, config_id, seed, params, choices, config in drafts
+    )
+    return Plan(entries=entries, hash=plan_hash)

@@ -1,0 +1,616 @@
+"""Study specs: YAML files validated into a frozen ``StudySpec``.
+
+``load_spec(path)`` reads and validates a spec; any problem raises ``SpecError`` whose
+message names the dotted field (``sac.lr[1]``, ``methods.vae.beta``), what is allowed, and
+a close name for a typo. The schema is documented field by field below (and in
+``studies/*.yaml``).
+
+YAML is read with a strict loader that follows the YAML 1.2 core schema rather than
+PyYAML's YAML 1.1 defaults, because 1.1 silently changes values:
+
+- ``1e-4`` is the float 0.0001 (1.1 reads a string); ``1_000_000`` is an integer;
+- ``010`` is the integer 10 (1.1 reads octal 8); ``0x1f`` and ``0o17`` still work;
+- only ``true``/``false`` are booleans (1.1 turns ``yes``, ``no``, ``on``, ``off`` into
+  booleans); dates and ``1:30`` stay strings;
+- a key repeated in one mapping is an error naming the key and line (1.1 keeps the last).
+
+Numbers are then validated strictly: an integer field refuses ``2.0``, ``"2"`` and ``true``;
+a float field accepts integers.
+"""
+
+from __future__ import annotations
+
+import difflib
+import inspect
+import math
+import os
+import re
+from pathlib import Path
+from typing import Annotated, Any
+
+import yaml
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    Strict,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
+
+from sweeper.space import (
+    METHOD_DEFAULTS,
+    OPTION_BOUNDS,
+    OPTION_ENV_VARS,
+    REQUIRED_OPTIONS,
+    SAC_DEFAULTS,
+    Scalar,
+)
+
+STATE_METHOD = "state"
+_NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
+_URL_RE = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
+
+
+class SpecError(ValueError):
+    """A spec that cannot be used. ``errors`` holds ``(dotted_path, message)`` pairs."""
+
+    def __init__(self, message: str, errors: list[tuple[str, str]] | None = None) -> None:
+        super().__init__(message)
+        self.errors = errors or []
+
+
+# ---- YAML --------------------------------------------------------------------------------
+
+
+class _SpecLoader(yaml.SafeLoader):
+    """SafeLoader with YAML 1.2 core-schema scalars and duplicate keys rejected."""
+
+    yaml_implicit_resolvers: dict = {}  # noqa: RUF012 (PyYAML's class-level registry)
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=True)
+            line = key_node.start_mark.line + 1
+            if isinstance(key, list | dict):
+                raise SpecError(f"line {line}: a mapping key must be a plain value, got {key!r}")
+            if key in seen:
+                raise SpecError(
+                    f"line {line}: duplicate key {key!r} (first at line {seen[key]}); "
+                    "each key may appear once per mapping"
+                )
+            seen[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+
+def _construct_int(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> int:
+    text = loader.construct_scalar(node).replace("_", "")
+    if text[:2] in ("0x", "0o"):
+        return int(text, 0)
+    return int(text, 10)
+
+
+def _construct_float(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> float:
+    text = loader.construct_scalar(node).replace("_", "").lower()
+    if text.endswith(".inf"):
+        return -math.inf if text.startswith("-") else math.inf
+    if text == ".nan":
+        return math.nan
+    return float(text)
+
+
+_SpecLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:null", re.compile(r"^(?:~|null|Null|NULL|)$"), ["~", "n", "N", ""]
+)
+_SpecLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF")
+)
+_SpecLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:int",
+    re.compile(r"^(?:[-+]?[0-9][0-9_]*|0o[0-7]+|0x[0-9a-fA-F]+)$"),
+    list("-+0123456789"),
+)
+_SpecLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(
+        r"^(?:[-+]?(?:\.[0-9]+|[0-9][0-9_]*(?:\.[0-9_]*)?)(?:[eE][-+]?[0-9]+)?"
+        r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"
+    ),
+    list("-+0123456789."),
+)
+_SpecLoader.add_implicit_resolver("tag:yaml.org,2002:merge", re.compile(r"^<<$"), ["<"])
+_SpecLoader.add_constructor("tag:yaml.org,2002:int", _construct_int)
+_SpecLoader.add_constructor("tag:yaml.org,2002:float", _construct_float)
+
+
+def load_yaml(text: str) -> Any:
+    """Parse YAML with the spec loader (YAML 1.2 core scalars, no duplicate keys)."""
+    try:
+        return yaml.load(text, Loader=_SpecLoader)  # a SafeLoader subclass
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise SpecError(f"invalid YAML{where}: {exc.problem or exc.context}") from None
+    except yaml.YAMLError as exc:
+        raise SpecError(f"invalid YAML: {exc}") from None
+
+
+# ---- value types ---------------------------------------------------------------------------
+
+
+def _error(message: str, at: str = "") -> PydanticCustomError:
+    """A validation error; ``at`` extends the field path pydantic reports (``vae.beta``)."""
+    return PydanticCustomError("spec", "{message}", {"message": message, "at": at})
+
+
+def _suggest(word: Any, allowed: list[str]) -> str:
+    close = difflib.get_close_matches(str(word), allowed, n=1)
+    return f"did you mean {close[0]!r}? " if close else ""
+
+
+def _as_choices(value: Any) -> Any:
+    """A scalar is a one-choice list; an empty list is an empty search space."""
+    if isinstance(value, list | tuple):
+        if not value:
+            raise _error("empty search space: give a value or a non-empty list of choices")
+        return value
+    return [value]
+
+
+def _as_size_choices(value: Any) -> Any:
+    """``[256, 256]`` is one choice of layer sizes; ``[[256, 256], [512, 512]]`` two."""
+    if isinstance(value, list | tuple) and value and all(isinstance(v, int) for v in value):
+        return [value]
+    return _as_choices(value)
+
+
+def _distinct(choices: tuple[Any, ...]) -> tuple[Any, ...]:
+    if len(set(choices)) != len(choices):
+        raise _error(f"choices must be distinct, got {list(choices)}")
+    return choices
+
+
+def _choices(item: Any, convert: Any = _as_choices) -> Any:
+    """A tuple of distinct choices of ``item``; a scalar in YAML means one choice."""
+    return Annotated[tuple[item, ...], BeforeValidator(convert), AfterValidator(_distinct)]
+
+
+PosInt = Annotated[int, Strict(), Field(ge=1)]
+NonNegInt = Annotated[int, Strict(), Field(ge=0)]
+SeedInt = Annotated[int, Strict(), Field(ge=0, le=2**32 - 1)]
+PosFloat = Annotated[float, Strict(), Field(gt=0)]
+NonNegFloat = Annotated[float, Strict(), Field(ge=0)]
+UnitFloat = Annotated[float, Strict(), Field(gt=0, le=1)]
+Sizes = Annotated[tuple[PosInt, ...], Field(min_length=1)]
+SizeChoices = _choices(Sizes, _as_size_choices)
+PosIntChoices = _choices(PosInt)
+NonNegIntChoices = _choices(NonNegInt)
+PosFloatChoices = _choices(PosFloat)
+UnitFloatChoices = _choices(UnitFloat)
+
+
+class _Strict(BaseModel):
+    """Frozen, no unknown keys (reported with a close name), no NaN/inf."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_unknown_keys(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            allowed = list(cls.model_fields)
+            for key in data:
+                if key not in cls.model_fields:
+                    raise _error(
+                        f"unknown field; {_suggest(key, allowed)}allowed: {', '.join(allowed)}",
+                        at=str(key),
+                    )
+        return data
+
+
+def _check_scalar(value: Any, like: Any, at: str, bounds: tuple[float, bool] | None = None) -> Any:
+    """Validate one option value against the type of ``like`` (a default or a choice).
+
+    ``like`` of ``inspect.Parameter.empty`` or ``None`` accepts any scalar. ``bounds`` is
+    (lower, inclusive) for numbers. Returns the value, with integers widened for floats.
+    """
+    kind = type(like) if isinstance(like, bool | int | float | str) else None
+    if kind is bool:
+        ok, what = isinstance(value, bool), "true or false"
+    elif kind is int:
+        ok, what = isinstance(value, int) and not isinstance(value, bool), "an integer"
+    elif kind is float:
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+        ok, what = ok and math.isfinite(value), "a finite number"
+        value = float(value) if ok else value
+    elif kind is str:
+        ok, what = isinstance(value, str), "a string"
+    else:
+        ok, what = isinstance(value, bool | int | float | str), "a string, number or boolean"
+    if ok and bounds is not None and kind in (int, float):
+        low, inclusive = bounds
+        ok = value >= low if inclusive else value > low
+        what = f"{what} {'>=' if inclusive else '>'} {low}"
+    if not ok:
+        raise _error(f"must be {what}, got {value!r}", at=at)
+    return value
+
+
+def _option_choices(raw: Any, like: Any, at: str, bounds: tuple[float, bool] | None) -> tuple:
+    """A method option: a scalar (fixed) or a non-empty list of distinct choices."""
+    if isinstance(raw, list | tuple):
+        if not raw:
+            raise _error("empty search space: give a value or a non-empty list of choices", at)
+        choices = tuple(_check_scalar(v, like, f"{at}[{i}]", bounds) for i, v in enumerate(raw))
+        if len(set(choices)) != len(choices):
+            raise _error(f"choices must be distinct, got {raw}", at=at)
+        return choices
+    return (_check_scalar(raw, like, at, bounds),)
+
+
+def method_names() -> tuple[str, ...]:
+    """Methods a spec may name: the encoder registry's names and ``"state"`` (the oracle)."""
+    from encoders import encoder_names
+
+    return (*encoder_names(), STATE_METHOD)
+
+
+def _method_space(name: str, options: Any) -> dict[str, tuple[Scalar, ...]]:
+    """The full search space of method ``name``: defaults from ``sweeper.space``, the
+    encoder's own scalar defaults, and the spec's ``options`` on top."""
+    from encoders import encoder_options
+
+    if options is None:
+        options = {}
+    if not isinstance(options, dict):
+        raise _error(f"must be a mapping of options (or {{}} for the defaults), got {options!r}")
+    accepted = {} if name == STATE_METHOD else encoder_options(name)
+    defaults = METHOD_DEFAULTS.get(name, {})
+    for key in options:
+        if key not in accepted:
+            listed = ", ".join(accepted) or "none"
+            raise _error(
+                f"unknown option of method {name!r}; {_suggest(key, list(accepted))}"
+                f"allowed: {listed}",
+                at=f"{name}.{key}",
+            )
+    space: dict[str, tuple[Scalar, ...]] = {}
+    for key, default in accepted.items():
+        like = defaults[key][0] if key in defaults else default
+        at, bounds = f"{name}.{key}", OPTION_BOUNDS.get(key)
+        env_var = OPTION_ENV_VARS.get((name, key), "")
+        if key in options:
+            space[key] = _option_choices(options[key], like, at, bounds)
+        elif key in defaults:
+            space[key] = defaults[key]
+        elif os.environ.get(env_var):
+            space[key] = (os.environ[env_var],)
+        elif default is inspect.Parameter.empty or key in REQUIRED_OPTIONS.get(name, ()):
+            hint = f" or set ${env_var}" if env_var else ""
+            raise _error(f"required option of method {name!r}: give it in the spec{hint}", at)
+        elif isinstance(default, bool | int | float | str):
+            space[key] = (default,)  # recorded as a fixed param
+    return space
+
+
+# ---- the spec -------------------------------------------------------------------------------
+
+
+class EnvSpec(_Strict):
+    """The environment every trial runs in."""
+
+    name: str = Field(description="an env name from agent.envs.ENV_NAMES")
+    image_size: PosInt | None = Field(None, description="pixels per side; null: the env default")
+    options: dict[str, Any] = Field(
+        default_factory=dict, description="extra keyword arguments of the env's constructor"
+    )
+
+    @field_validator("name")
+    @classmethod
+    def _known_env(cls, name: str) -> str:
+        from agent.envs import ENV_NAMES
+
+        if name not in ENV_NAMES:
+            raise _error(
+                f"unknown env {name!r}; {_suggest(name, list(ENV_NAMES))}"
+                f"allowed: {', '.join(ENV_NAMES)}"
+            )
+        return name
+
+    @model_validator(mode="after")
+    def _fits_env_class(self) -> EnvSpec:
+        """Check image_size and options against the env class (imported only when needed)."""
+        if self.image_size is None and not self.options:
+            return self
+        from agent.envs import ENV_ENTRY_POINTS
+
+        module_name, class_name = ENV_ENTRY_POINTS[self.name].split(":")
+        try:
+            env_class = getattr(__import__(module_name, fromlist=[class_name]), class_name)
+        except Exception as exc:  # an env module that is missing or broken
+            raise _error(f"env {self.name!r} cannot be loaded: {exc}", at="name") from None
+        if self.image_size is not None:
+            low, high = env_class.min_image_size, 256
+            if not low <= self.image_size <= high:
+                raise _error(
+                    f"must be in [{low}, {high}] for {self.name}, got {self.image_size}",
+                    at="image_size",
+                )
+        reserved = {"self", "image_size", "obs_mode", "render_mode"}
+        accepted = {
+            p.name: p.default
+            for p in inspect.signature(env_class.__init__).parameters.values()
+            if p.name not in reserved and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
+        }
+        for key, value in self.options.items():
+            if key not in accepted:
+                hint = " (set by the sweeper)" if key in reserved else ""
+                raise _error(
+                    f"unknown option of env {self.name!r}{hint}; "
+                    f"{_suggest(key, list(accepted))}allowed: {', '.join(accepted) or 'none'}",
+                    at=f"options.{key}",
+                )
+            _check_scalar(value, accepted[key], at=f"options.{key}")
+        return self
+
+
+class SACSpace(_Strict):
+    """The SAC search space (field names of ``agent.config.SACConfig``); defaults: A.1."""
+
+    hidden_sizes: SizeChoices = Field(SAC_DEFAULTS["hidden_sizes"], description="MLP layers")
+    discount: UnitFloatChoices = SAC_DEFAULTS["discount"]
+    init_temperature: PosFloatChoices = SAC_DEFAULTS["init_temperature"]
+    lr: PosFloatChoices = SAC_DEFAULTS["lr"]
+    actor_update_every: PosIntChoices = SAC_DEFAULTS["actor_update_every"]
+    critic_tau: UnitFloatChoices = SAC_DEFAULTS["critic_tau"]
+    batch_size: PosIntChoices = SAC_DEFAULTS["batch_size"]
+    updates_per_step: PosIntChoices = SAC_DEFAULTS["updates_per_step"]
+    buffer_capacity: PosIntChoices = SAC_DEFAULTS["buffer_capacity"]
+    feature_dim: PosIntChoices = SAC_DEFAULTS["feature_dim"]
+    num_filters: PosIntChoices = SAC_DEFAULTS["num_filters"]
+    image_pad: NonNegIntChoices = SAC_DEFAULTS["image_pad"]
+
+    @model_validator(mode="after")
+    def _batch_fits_buffer(self) -> SACSpace:
+        if max(self.batch_size) > min(self.buffer_capacity):
+            raise _error(
+                f"every batch_size must be <= every buffer_capacity, got batch_size "
+                f"{max(self.batch_size)} > buffer_capacity {min(self.buffer_capacity)}",
+                at="batch_size",
+            )
+        return self
+
+    def space(self) -> dict[str, tuple[Any, ...]]:
+        """Field name -> choices, in ``SACConfig`` order."""
+        return {name: getattr(self, name) for name in type(self).model_fields}
+
+
+class Budget(_Strict):
+    """What one trial runs: env steps and the evaluation grid 0, eval_every, ..., env_steps."""
+
+    env_steps: PosInt = Field(description="env steps per trial, an integer >= 1")
+    seed_steps: NonNegInt = Field(1000, description="random-action steps before learning")
+    eval_every: PosInt = Field(1000, description="env steps between evaluations")
+    eval_episodes: PosInt = Field(10, description="episodes per evaluation")
+
+    @model_validator(mode="after")
+    def _grid(self) -> Budget:
+        if self.env_steps % self.eval_every:
+            raise _error(
+                f"must divide env_steps ({self.env_steps}) so the grid ends at env_steps, "
+                f"got {self.eval_every}",
+                at="eval_every",
+            )
+        if self.seed_steps >= self.env_steps:
+            raise _error(
+                f"must be < env_steps ({self.env_steps}), got {self.seed_steps}", at="seed_steps"
+            )
+        return self
+
+
+class Execution(_Strict):
+    """Where and how trials run."""
+
+    address: str | None = Field(None, description="a Ray address; null: a local Ray instance")
+    max_concurrent: PosInt = Field(2, description="trials at once, an integer >= 1")
+    cpus_per_trial: PosFloat = 1.0
+    gpus_per_trial: NonNegFloat = 0.0
+    threads_per_trial: PosInt = 1
+    retries: NonNegInt = Field(2, description="re-runs of a trial whose worker died")
+    checkpoint_every: PosInt = Field(5000, description="env steps between checkpoints")
+
+    @field_validator("address")
+    @classmethod
+    def _address(cls, address: str | None) -> str | None:
+        if address is not None and not address.strip():
+            raise _error("must be a Ray address such as 'auto' or 'ray://host:10001', or null")
+        return address
+
+
+class StudySpec(_Strict):
+    """A whole study: what runs (env, methods, search space, budget) and where."""
+
+    study: str = Field(description="the study name: letters, digits, '_', '.', '-'")
+    seed: SeedInt = Field(0, description="samples the plan")
+    env: EnvSpec = Field(description="a mapping with name (required), image_size, options")
+    methods: dict[str, Any] = Field(
+        description="a mapping from method names (encoder names or 'state') to their options"
+    )
+    trials_per_method: PosInt = Field(description="K >= 1 SAC configurations shared by all methods")
+    seeds: Annotated[
+        tuple[SeedInt, ...], BeforeValidator(_as_choices), AfterValidator(_distinct)
+    ] = (0,)
+    sac: SACSpace = SACSpace()
+    budget: Budget = Field(description="a mapping with env_steps (required), seed_steps, ...")
+    storage: str | None = Field(None, description="an SQLAlchemy URL; null: SQLite under runs/")
+    checkpoints: str | None = Field(None, description="checkpoint directory; null: under runs/")
+    execution: Execution = Execution()
+
+    @field_validator("study")
+    @classmethod
+    def _study_name(cls, study: str) -> str:
+        if not _NAME_RE.match(study) or study.startswith("."):
+            raise _error(
+                f"must be letters, digits, '_', '.', '-' (not starting with '.'), got {study!r}"
+            )
+        return study
+
+    @field_validator("methods")
+    @classmethod
+    def _method_spaces(cls, methods: dict[str, Any]) -> dict[str, dict[str, tuple]]:
+        allowed = method_names()
+        if not methods:
+            raise _error(f"at least one method is required; allowed: {', '.join(allowed)}")
+        for name in methods:
+            if name not in allowed:
+                raise _error(
+                    f"unknown method; {_suggest(name, list(allowed))}allowed: {', '.join(allowed)}",
+                    at=name,
+                )
+        return {name: _method_space(name, options) for name, options in methods.items()}
+
+    @field_validator("storage")
+    @classmethod
+    def _storage_url(cls, storage: str | None) -> str | None:
+        if storage is not None and not _URL_RE.match(storage):
+            raise _error(
+                "must be an SQLAlchemy URL such as sqlite:///runs/study.db or "
+                f"postgresql+psycopg://user@host/db, or null; got {storage!r}"
+            )
+        return storage
+
+    @model_validator(mode="after")
+    def _local_files(self) -> StudySpec:
+        """On a local run, files the trials need must exist before anything starts."""
+        if self.execution.address is None:
+            for path in self.methods.get("vgg", {}).get("weights_path", ()):
+                if not Path(str(path)).is_file():
+                    raise _error(
+                        f"file not found: {path!r} (VGG16 weights in torchvision format)",
+                        at="methods.vgg.weights_path",
+                    )
+        return self
+
+    @property
+    def run_dir(self) -> Path:
+        """``runs/<study>`` (relative to the working directory)."""
+        return Path("runs") / self.study
+
+    @property
+    def storage_url(self) -> str:
+        """The study's storage: the spec's URL, or SQLite at ``runs/<study>/study.db``."""
+        return self.storage or f"sqlite:///{self.run_dir / 'study.db'}"
+
+    @property
+    def checkpoint_dir(self) -> str:
+        """The checkpoint root: the spec's ``checkpoints`` or ``runs/<study>/checkpoints``."""
+        return self.checkpoints or str(self.run_dir / "checkpoints")
+
+    @property
+    def trials_per_method_total(self) -> int:
+        """Counted trials per method: K configurations x the seeds."""
+        return self.trials_per_method * len(self.seeds)
+
+    def with_overrides(
+        self,
+        storage: str | None = None,
+        address: str | None = None,
+        max_concurrent: int | None = None,
+    ) -> StudySpec:
+        """A copy with CLI overrides (None keeps the spec's value), validated again."""
+        data = self.model_dump(mode="json")
+        if storage is not None:
+            data["storage"] = storage
+        if address is not None:
+            data["execution"]["address"] = address
+        if max_concurrent is not None:
+            data["execution"]["max_concurrent"] = max_concurrent
+        return parse_spec(data, source="override")
+
+
+# ---- loading -----------------------------------------------------------------------------------
+
+
+def _describe(loc: tuple[Any, ...]) -> str:
+    """The description of the field at ``loc`` (for "missing" errors), if any."""
+    model: Any = StudySpec
+    info = None
+    for part in loc:
+        fields = getattr(model, "model_fields", None)
+        if not fields or part not in fields:
+            return ""
+        info = fields[part]
+        model = info.annotation
+    return info.description or "" if info else ""
+
+
+def _dotted(loc: tuple[Any, ...] | list[Any]) -> str:
+    path = ""
+    for part in loc:
+        if isinstance(part, int):
+            path += f"[{part}]"
+        elif part == "[key]":
+            path += " (key)"
+        else:
+            path += f".{part}" if path else str(part)
+    return path
+
+
+def _format_errors(exc: ValidationError) -> list[tuple[str, str]]:
+    errors = []
+    for err in exc.errors(include_url=False):
+        loc = tuple(err["loc"])
+        ctx = err.get("ctx") or {}
+        if err["type"] == "spec":
+            path, message = _dotted(loc), ctx["message"]
+            at = ctx.get("at", "")
+            if at:
+                path = f"{path}{'' if at.startswith('[') or not path else '.'}{at}"
+        elif err["type"] == "missing":
+            path, message = _dotted(loc), "required field is missing"
+            description = _describe(loc)
+            if description:
+                message += f"; {description}"
+        else:
+            path, message = _dotted(loc), err["msg"]
+            if not isinstance(err.get("input"), dict):
+                message += f", got {err['input']!r}"
+        errors.append((path or "spec", message))
+    return errors
+
+
+def parse_spec(data: Any, source: str = "spec") -> StudySpec:
+    """Validate an already-parsed spec (a dict); raise ``SpecError`` naming every problem."""
+    if not isinstance(data, dict):
+        raise SpecError(
+            f"{source}: a spec must be a mapping of fields (study, env, methods, "
+            f"trials_per_method, budget, ...), got {type(data).__name__}"
+        )
+    try:
+        return StudySpec.model_validate(data)
+    except ValidationError as exc:
+        errors = _format_errors(exc)
+        detail = "; ".join(f"{path}: {message}" for path, message in errors)
+        raise SpecError(f"{source}: {detail}", errors) from None
+
+
+def load_spec(path: str | os.PathLike[str]) -> StudySpec:
+    """Read and validate a YAML study spec; raise ``SpecError`` on any problem."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise SpecError(f"{path}: cannot read the spec file: {reason}") from None
+    try:
+        data = load_yaml(text)
+    except SpecError as exc:
+        raise SpecError(f"{path}: {exc}") from None
+    return parse_spec(data, source=str(path))

@@ -1,0 +1,113 @@
+"""``sweeper status SPEC``: the per-method ledger of a study (done, running, failed, left).
+
+Counts are per plan key (``sweeper.storage.ledger``): a key re-run after a crash is
+counted once, by its current trial. Reads only; never creates the study or its file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import TextIO
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``sweeper status``."""
+    parser.add_argument("spec", help="the study spec, a YAML file (see studies/)")
+    parser.add_argument(
+        "--storage",
+        metavar="URL",
+        help="SQLAlchemy URL of the study database, overriding the spec's",
+    )
+
+
+def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
+    """``sweeper status``: print the ledger; exit 0, or 2 on a bad spec or storage."""
+    from sweeper.plan import build_plan
+    from sweeper.spec import load_spec
+    from sweeper.storage import StorageError, check_storage, redact
+
+    stream = sys.stdout if stream is None else stream
+    try:
+        spec = load_spec(args.spec)
+        if args.storage is not None:
+            spec = spec.with_overrides(storage=args.storage)
+        plan = build_plan(spec)
+        check_storage(spec.storage_url)
+        lines = status_lines(spec.study, spec.storage_url, plan.keys(), plan.hash)
+    except (ValueError, StorageError) as e:
+        print(f"sweeper status: {e}", file=sys.stderr)
+        return 2
+    print(f"study {spec.study!r} in {redact(spec.storage_url)}", file=stream)
+    print("\n".join(lines), file=stream)
+    return 0
+
+
+def status_lines(study: str, url: str, keys: list[str], plan_hash: str) -> list[str]:
+    """The ledger table and notes of ``study`` in ``url`` for the planned ``keys``."""
+    import optuna
+
+    from sweeper.storage import (
+        StorageError,
+        StudyStore,
+        sqlite_path,
+        current_trials,
+        ledger,
+        open_storage,
+        resolve_url,
+    )
+
+    path = sqlite_path(resolve_url(url))
+    if path is not None and not path.exists():
+        return [*_table(ledger(keys, [], False)), "not launched yet (no database file)"]
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    storage = open_storage(url, create=False)
+    try:
+        store = StudyStore.find(storage, study)
+        if store is None:
+            return [*_table(ledger(keys, [], False)), "not launched yet (no such study)"]
+        attrs = store.attrs
+        if attrs.get("plan_hash") not in (None, plan_hash):
+            raise StorageError(
+                f"study {study!r} was launched with another plan (plan_hash "
+                f"{attrs['plan_hash'][:12]}, this spec gives {plan_hash[:12]})"
+            )
+        trials = store.trials()
+        alive = store.driver_alive()
+    finally:
+        storage.remove_session()
+        storage.engine.dispose()
+    lines = _table(ledger(keys, trials, alive))
+    driver = attrs.get("driver")
+    if alive:
+        lines.append(f"driver: running (host {driver['host']}, pid {driver['pid']})")
+    else:
+        lines.append("driver: not running")
+    current = current_trials(trials)
+    for key in keys:
+        trial = current.get(key)
+        if trial is None or trial.state.name != "FAIL":
+            continue
+        if trial.user_attrs.get("outcome") == "interrupted":
+            lines.append(f"interrupted: {key} (trial {trial.number}); a launch resumes it")
+        else:
+            error = str(trial.user_attrs.get("error", "no error recorded")).splitlines()[0]
+            lines.append(f"failed: {key} (trial {trial.number}): {error}")
+    if not alive and any(t.state.name == "RUNNING" for t in current.values()):
+        lines.append("trials marked RUNNING have no live driver; a launch resumes them")
+    return lines
+
+
+def _table(counts: dict) -> list[str]:
+    columns = ("planned", "done", "diverged", "running", "failed", "left")
+    width = max([len("method"), len("total"), *(len(m) for m in counts)])
+    header = f"{'method':<{width}}" + "".join(f"{c:>10}" for c in columns)
+    rows = [header]
+    totals = dict.fromkeys(columns, 0)
+    for method, line in counts.items():
+        values = [getattr(line, c) for c in columns]
+        rows.append(f"{method:<{width}}" + "".join(f"{v:>10}" for v in values))
+        for c, v in zip(columns, values, strict=True):
+            totals[c] += v
+    rows.append(f"{'total':<{width}}" + "".join(f"{totals[c]:>10}" for c in columns))
+    return rows

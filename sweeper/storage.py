@@ -1,0 +1,468 @@
+"""The study database: one Optuna study per spec, written only by the sweep driver.
+
+Conventions (docs/architecture.md, "Storage conventions"): one Optuna trial per plan key
+``"{method}/{config_id}/{seed}"``; a key that has to be run again (its driver died, it was
+interrupted, or it failed) gets a fresh trial, and the trial with the highest number is the
+key's *current* trial. ``ledger`` counts keys, never trials, so the counts are exact.
+
+SQLite files are switched to WAL journal mode and opened with a long busy timeout, so
+optuna-dashboard (or ``sweeper status``) can read a study while the driver writes it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+import sqlite3
+import subprocess
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # optuna and sqlalchemy are imported where used: `sweeper --help` stays light
+    import optuna
+    from optuna.trial import FrozenTrial
+
+#: seconds a SQLite connection waits for a lock before giving up
+SQLITE_TIMEOUT = 60.0
+#: a driver whose heartbeat is older than this is considered dead
+DRIVER_STALE_SECONDS = 60.0
+#: distributions whose versions the study records
+VERSIONED_PACKAGES = (
+    "gcrl-sweeper",
+    "torch",
+    "numpy",
+    "mujoco",
+    "gymnasium",
+    "gymnasium-robotics",
+    "metaworld",
+    "optuna",
+    "ray",
+    "sqlalchemy",
+)
+
+
+class StorageError(ValueError):
+    """A storage URL that cannot be used, or a study that does not match its spec."""
+
+
+class StudyBusy(RuntimeError):
+    """Another live driver runs the study."""
+
+
+def resolve_url(url: str) -> str:
+    """The SQLAlchemy URL to connect with.
+
+    ``postgresql://`` means psycopg 3 here (the installed driver); SQLAlchemy would pick
+    psycopg2, which is not installed.
+    """
+    if url.startswith("postgresql://") or url.startswith("postgres://"):
+        return "postgresql+psycopg://" + url.split("://", 1)[1]
+    return url
+
+
+def redact(url: str) -> str:
+    """``url`` without its password, for messages."""
+    from sqlalchemy.engine import make_url
+
+    try:
+        return make_url(url).render_as_string(hide_password=True)
+    except Exception:
+        return url.split("@")[-1]
+
+
+def sqlite_path(url: str) -> Path | None:
+    """The file of a ``sqlite:///`` URL, None for other backends."""
+    from sqlalchemy.engine import make_url
+
+    parsed = make_url(url)
+    if parsed.get_backend_name() != "sqlite":
+        return None
+    if not parsed.database or parsed.database == ":memory:":
+        raise StorageError(
+            f"storage: {url!r} is an in-memory SQLite database, which loses the study when "
+            "the driver exits; give a file, e.g. sqlite:///runs/study.db"
+        )
+    return Path(parsed.database)
+
+
+def check_storage(url: str) -> None:
+    """Raise a StorageError naming ``storage`` unless ``url`` can be used; write nothing.
+
+    SQLite: the file's directory must exist or be creatable, and be writable. Any other
+    backend: a connection is opened and ``SELECT 1`` run.
+    """
+    from sqlalchemy import create_engine, text
+    from sqlalchemy.exc import ArgumentError, NoSuchModuleError
+
+    try:
+        path = sqlite_path(resolve_url(url))
+    except (ArgumentError, ValueError) as e:
+        if isinstance(e, StorageError):
+            raise
+        raise StorageError(f"storage: {url!r} is not a database URL ({e})") from None
+    if path is not None:
+        if path.exists() and not path.is_file():
+            raise StorageError(f"storage: {path} exists and is not a file")
+        parent = path.parent.absolute()
+        while not parent.exists():
+            parent = parent.parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+            raise StorageError(f"storage: cannot create {path}: {parent} is not writable")
+        return
+    resolved = resolve_url(url)
+    # a host that drops packets must not hang the launch
+    connect_args = {"connect_timeout": 10} if resolved.startswith("postgresql") else {}
+    try:
+        engine = create_engine(resolved, connect_args=connect_args)
+    except (ArgumentError, NoSuchModuleError, ImportError) as e:
+        raise StorageError(f"storage: cannot use {redact(url)}: {e}") from None
+    try:
+        with engine.connect() as connection:
+            connection.execute(text("SELECT 1"))
+    except Exception as e:
+        reason = str(getattr(e, "orig", e)).strip().splitlines()[0]
+        raise StorageError(f"storage: cannot connect to {redact(url)}: {reason}") from None
+    finally:
+        engine.dispose()
+
+
+def open_storage(url: str, create: bool = True) -> optuna.storages.RDBStorage:
+    """An Optuna RDB storage for ``url``.
+
+    ``create``: create the tables (and the SQLite file) if needed, as the driver does;
+    readers pass False, since two processes creating tables at once collide.
+    """
+    import optuna
+
+    resolved = resolve_url(url)
+    engine_kwargs: dict[str, Any] = {}
+    path = sqlite_path(resolved)
+    if path is not None:
+        if create:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            # WAL is a property of the database file: once set, every later connection (the
+            # dashboard's too) reads without blocking the writer and is never blocked by it.
+            with sqlite3.connect(path, timeout=SQLITE_TIMEOUT) as connection:
+                connection.execute("PRAGMA journal_mode=WAL")
+            connection.close()
+        engine_kwargs["connect_args"] = {"timeout": SQLITE_TIMEOUT}
+    else:
+        engine_kwargs["pool_pre_ping"] = True
+    return optuna.storages.RDBStorage(
+        resolved, engine_kwargs=engine_kwargs, skip_table_creation=not create
+    )
+
+
+def code_revision() -> str:
+    """The git commit of this checkout (``-dirty`` if tracked files changed), or "unknown"."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10
+        )
+        if commit.returncode != 0:
+            return "unknown"
+        dirty = subprocess.run(
+            ["git", "diff", "--quiet", "HEAD"], cwd=root, capture_output=True, timeout=10
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return "unknown"
+    return commit.stdout.strip() + ("-dirty" if dirty.returncode == 1 else "")
+
+
+def package_versions() -> dict[str, str]:
+    """Installed versions of the packages a result depends on."""
+    versions = {}
+    for name in VERSIONED_PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = "not installed"
+    return versions
+
+
+def json_safe(values: Iterable[float]) -> list[float | None]:
+    """Floats with NaN/inf as None: user attrs are JSON, and the dashboard's parser rejects NaN."""
+    return [float(v) if math.isfinite(v) else None for v in values]
+
+
+@dataclass(frozen=True)
+class Counts:
+    """One method's line of the ledger; every planned key is in exactly one of
+    done / running / failed / left."""
+
+    planned: int = 0
+    done: int = 0  # COMPLETE (diverged ones included)
+    diverged: int = 0
+    running: int = 0
+    failed: int = 0  # FAIL after the retry limit or an exception; relaunch re-runs it
+    left: int = 0  # not started, waiting, or interrupted (relaunch resumes it)
+
+
+def current_trials(trials: Iterable[FrozenTrial]) -> dict[str, FrozenTrial]:
+    """Key -> the key's current trial (the highest-numbered trial with that key)."""
+    current: dict[str, FrozenTrial] = {}
+    for trial in trials:
+        key = trial.user_attrs.get("key")
+        if key is not None and (key not in current or trial.number > current[key].number):
+            current[key] = trial
+    return current
+
+
+def ledger(
+    plan_keys: Sequence[str], trials: Iterable[FrozenTrial], driver_alive: bool
+) -> dict[str, Counts]:
+    """Per-method counts of the planned keys (method = the key's first part).
+
+    A RUNNING trial counts as running only while a driver is alive; otherwise its driver
+    died and the key is left for the next launch, like an interrupted one.
+    """
+    from optuna.trial import TrialState
+
+    current = current_trials(trials)
+    tally: dict[str, dict[str, int]] = {}
+    for key in plan_keys:
+        line = tally.setdefault(key.split("/")[0], dict.fromkeys(Counts.__dataclass_fields__, 0))
+        line["planned"] += 1
+        trial = current.get(key)
+        outcome = trial.user_attrs.get("outcome") if trial else None
+        if trial is None or trial.state == TrialState.WAITING:
+            line["left"] += 1
+        elif trial.state == TrialState.COMPLETE:
+            line["done"] += 1
+            line["diverged"] += outcome == "diverged"
+        elif trial.state == TrialState.RUNNING:
+            line["running" if driver_alive else "left"] += 1
+        elif outcome == "interrupted":
+            line["left"] += 1
+        else:
+            line["failed"] += 1
+    return {method: Counts(**line) for method, line in tally.items()}
+
+
+class StudyStore:
+    """The driver's handle on one study: every write the sweep makes goes through here."""
+
+    def __init__(self, storage: optuna.storages.RDBStorage, study_id: int) -> None:
+        self.storage = storage
+        self.study_id = study_id
+
+    # -- study ------------------------------------------------------------------------
+
+    @classmethod
+    def find(cls, storage: optuna.storages.RDBStorage, name: str) -> StudyStore | None:
+        """The study called ``name``, or None if there is none."""
+        from optuna.exceptions import StorageInternalError
+
+        try:
+            return cls(storage, storage.get_study_id_from_name(name))
+        except KeyError:
+            return None
+        except StorageInternalError:  # pragma: no cover - a locked or broken database
+            raise
+
+    @classmethod
+    def open_or_create(
+        cls,
+        storage: optuna.storages.RDBStorage,
+        name: str,
+        attrs: Mapping[str, Any],
+    ) -> StudyStore:
+        """Load study ``name`` or create it with study user attrs ``attrs``.
+
+        ``attrs["plan_hash"]`` must match the stored one: mixing two plans in one study
+        would mix two budgets, so a mismatch is a StorageError.
+        """
+        from optuna.exceptions import DuplicatedStudyError
+        from optuna.study import StudyDirection
+
+        store = cls.find(storage, name)
+        if store is None:
+            try:
+                study_id = storage.create_new_study([StudyDirection.MAXIMIZE], name)
+            except DuplicatedStudyError:  # another driver created it meanwhile
+                study_id = storage.get_study_id_from_name(name)
+            store = cls(storage, study_id)
+        stored = store.attrs
+        if "plan_hash" not in stored:  # new, or a creation cut short before its attrs
+            if store.trials():
+                raise StorageError(
+                    f"storage: study {name!r} has trials but no plan_hash: it was not "
+                    "written by sweeper; choose another study name"
+                )
+            for key, value in attrs.items():
+                storage.set_study_user_attr(study_id=store.study_id, key=key, value=value)
+        elif stored["plan_hash"] != attrs["plan_hash"]:
+            raise StorageError(
+                f"study {name!r} in this storage was launched with another plan "
+                f"(plan_hash {stored['plan_hash'][:12]}, this spec gives "
+                f"{attrs['plan_hash'][:12]}): the spec's methods, budget, seeds or search "
+                "space changed. Use a new study name, or restore the old spec."
+            )
+        return store
+
+    @property
+    def attrs(self) -> dict[str, Any]:
+        """The study's user attrs."""
+        return self.storage.get_study_user_attrs(self.study_id)
+
+    def trials(self) -> list[FrozenTrial]:
+        """All trials, oldest first."""
+        return self.storage.get_all_trials(self.study_id, deepcopy=False)
+
+    # -- driver lock ------------------------------------------------------------------
+
+    def driver_alive(self, now: float | None = None) -> bool:
+        """Whether another live driver holds this study (heartbeat recent, same-host pid alive)."""
+        driver = self.attrs.get("driver")
+        if not driver:
+            return False
+        now = time.time() if now is None else now
+        if now - float(driver.get("heartbeat", 0)) > DRIVER_STALE_SECONDS:
+            return False
+        if driver.get("host") == socket.gethostname():
+            return _pid_alive(int(driver["pid"]))
+        return True
+
+    def claim_driver(self) -> None:
+        """Become the study's driver, or raise StudyBusy if another one is alive."""
+        driver = self.attrs.get("driver") or {}
+        if driver.get("pid") != os.getpid() and self.driver_alive():
+            raise StudyBusy(
+                f"another `sweeper launch` drives this study (host {driver['host']}, "
+                f"pid {driver['pid']}); stop it first, or wait {DRIVER_STALE_SECONDS:.0f} s "
+                "after it died on another host"
+            )
+        self.heartbeat()
+
+    def heartbeat(self) -> None:
+        """Record that this driver is alive."""
+        driver = {"host": socket.gethostname(), "pid": os.getpid(), "heartbeat": time.time()}
+        self.storage.set_study_user_attr(self.study_id, "driver", driver)
+
+    def release_driver(self) -> None:
+        """Say that no driver runs the study any more."""
+        self.storage.set_study_user_attr(self.study_id, "driver", None)
+
+    # -- trials -----------------------------------------------------------------------
+
+    def sync(self, entries: Sequence[Any], plan_hash: str) -> list[tuple[Any, FrozenTrial]]:
+        """Give every plan entry that is not done a WAITING current trial; return them.
+
+        ``entries`` are ``sweeper.plan.PlanEntry``. Call it only as the study's driver: a
+        RUNNING trial here was left by a dead driver, so it is failed as ``interrupted``
+        with ``superseded_by`` its successor. A FAIL or interrupted key gets a fresh
+        trial that lists the old ones in ``supersedes``. COMPLETE keys are left alone.
+        """
+        from optuna.trial import TrialState
+
+        trials = self.trials()
+        by_key: dict[str, list[FrozenTrial]] = {}
+        for trial in trials:
+            by_key.setdefault(trial.user_attrs.get("key", ""), []).append(trial)
+        todo = []
+        for entry in entries:
+            history = by_key.get(entry.key, [])
+            current = max(history, key=lambda t: t.number) if history else None
+            if current is not None and current.state == TrialState.COMPLETE:
+                continue
+            if current is None or current.state != TrialState.WAITING:
+                attrs = {
+                    "method": entry.method,
+                    "config_id": entry.config_id,
+                    "seed": entry.seed,
+                    "key": entry.key,
+                    "plan_hash": plan_hash,
+                    "attempts": 0,
+                }
+                if history:
+                    attrs["supersedes"] = sorted(t.number for t in history)
+                current = self.add_waiting(entry.params, entry.choices, attrs)
+            for trial in history:  # stale RUNNING ones, current or not
+                if trial.state == TrialState.RUNNING:
+                    self.interrupt(trial._trial_id, "its driver stopped", current.number)
+            todo.append((entry, current))
+        for trial in by_key.get("", []):  # not ours; a RUNNING one would look live forever
+            if trial.state == TrialState.RUNNING:
+                self.interrupt(trial._trial_id, "it has no plan key", None)
+        return todo
+
+    def interrupt(self, trial_id: int, why: str, successor: int | None) -> None:
+        """FAIL a RUNNING trial as ``interrupted`` (its key is re-run, from its checkpoint)."""
+        attrs: dict[str, Any] = {"outcome": "interrupted", "error": f"interrupted: {why}"}
+        if successor is not None:
+            attrs["superseded_by"] = successor
+        self.fail(trial_id, attrs)
+
+    def add_waiting(
+        self,
+        params: Mapping[str, Any],
+        choices: Mapping[str, Sequence[Any]],
+        user_attrs: Mapping[str, Any],
+    ) -> FrozenTrial:
+        """Create a WAITING trial with its params and user attrs in one transaction."""
+        from optuna.distributions import CategoricalDistribution
+        from optuna.trial import FrozenTrial, TrialState
+
+        template = FrozenTrial(
+            number=-1,
+            state=TrialState.WAITING,
+            value=None,
+            values=None,
+            datetime_start=None,
+            datetime_complete=None,
+            params=dict(params),
+            distributions={k: CategoricalDistribution(tuple(choices[k])) for k in params},
+            user_attrs=dict(user_attrs),
+            system_attrs={},
+            intermediate_values={},
+            trial_id=-1,
+        )
+        trial_id = self.storage.create_new_trial(self.study_id, template_trial=template)
+        return self.storage.get_trial(trial_id)
+
+    def start(self, trial_id: int) -> None:
+        """WAITING -> RUNNING."""
+        from optuna.trial import TrialState
+
+        if not self.storage.set_trial_state_values(trial_id, TrialState.RUNNING):
+            raise StorageError(f"trial {trial_id} was started by someone else")
+
+    def set_attrs(self, trial_id: int, attrs: Mapping[str, Any]) -> None:
+        """Set user attrs of a trial that is not finished."""
+        for key, value in attrs.items():
+            self.storage.set_trial_user_attr(trial_id, key, value)
+
+    def report(self, trial_id: int, points: Mapping[int, float]) -> None:
+        """Intermediate values ``step -> success_rate`` (re-writing a step overwrites it)."""
+        for step, value in points.items():
+            self.storage.set_trial_intermediate_value(trial_id, int(step), float(value))
+
+    def complete(self, trial_id: int, value: float, attrs: Mapping[str, Any]) -> None:
+        """Set ``attrs``, then COMPLETE with objective ``value``."""
+        from optuna.trial import TrialState
+
+        self.set_attrs(trial_id, attrs)
+        self.storage.set_trial_state_values(trial_id, TrialState.COMPLETE, [float(value)])
+
+    def fail(self, trial_id: int, attrs: Mapping[str, Any]) -> None:
+        """Set ``attrs``, then FAIL."""
+        from optuna.trial import TrialState
+
+        self.set_attrs(trial_id, attrs)
+        self.storage.set_trial_state_values(trial_id, TrialState.FAIL)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

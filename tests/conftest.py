@@ -1,0 +1,40 @@
+"""Shared fixtures."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+CI_SPEC = ROOT / "studies" / "ci.yaml"
+
+
+@dataclass(frozen=True)
+class CIStudy:
+    """The CI study after ``sweeper launch``: run the CLI from ``workdir`` with
+    ``--storage storage_url`` to reach it."""
+
+    spec: Path
+    storage_url: str
+    workdir: Path
+
+
+@pytest.fixture(scope="session")
+def ci_study(tmp_path_factory: pytest.TempPathFactory) -> CIStudy:
+    """``sweeper launch studies/ci.yaml`` run once per session, in a fresh working directory
+    (its runs/ folder) with an SQLite storage there. Tests may read the study and add to
+    it (aggregate, dashboard notes) but must not relaunch or delete it."""
+    workdir = tmp_path_factory.mktemp("ci_study")
+    url = f"sqlite:///{workdir / 'study.db'}"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    command = [sys.executable, "-m", "sweeper.cli", "launch", str(CI_SPEC), "--storage", url]
+    done = subprocess.run(
+        command, cwd=workdir, env=env, capture_output=True, text=True, timeout=900
+    )
+    assert done.returncode == 0, f"sweeper launch failed:\n{done.stdout}\n{done.stderr[-4000:]}"
+    return CIStudy(CI_SPEC, url, workdir)

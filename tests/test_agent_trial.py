@@ -1,0 +1,180 @@
+"""``agent.train``: the curve, divergence, checkpoints and resume, every env end to end."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+import agent
+from agent.config import SACConfig, TrialConfig
+from agent.envs import ENV_ENTRY_POINTS, ENV_NAMES
+from agent.metrics import normalized_auc
+
+TINY_SAC = SACConfig(hidden_sizes=(16, 16), batch_size=16, updates_per_step=1, feature_dim=8,
+                     num_filters=8)  # fmt: skip
+
+
+def tiny(**kwargs) -> TrialConfig:
+    base = dict(
+        env="point_reach",
+        image_size=32,
+        sac=TINY_SAC,
+        total_steps=200,
+        seed_steps=50,
+        eval_every=100,
+        eval_episodes=2,
+        device="cpu",
+    )
+    return TrialConfig(**{**base, **kwargs})
+
+
+class Recorder:
+    """A report callback that keeps the last metrics per step, as the sweeper does."""
+
+    def __init__(self, crash_at: int | None = None) -> None:
+        self.points: dict[int, dict[str, float]] = {}
+        self.calls: list[int] = []
+        self.crash_at = crash_at
+
+    def __call__(self, step: int, metrics: dict[str, float]) -> None:
+        self.points[step] = metrics
+        self.calls.append(step)
+        if step == self.crash_at:
+            raise KeyboardInterrupt("simulated crash")
+
+
+def test_import_agent_is_light() -> None:
+    import subprocess
+    import sys
+
+    code = "import sys, agent; print('torch' in sys.modules, 'mujoco' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False"]
+
+
+def test_train_reports_the_whole_grid() -> None:
+    report = Recorder()
+    result = agent.train(tiny(), report)
+    assert result.steps == (0, 100, 200) and report.calls == [0, 100, 200]
+    assert set(result.metrics) == {"success_rate", "final_distance"}
+    for i, step in enumerate(result.steps):
+        assert report.points[step] == {k: v[i] for k, v in result.metrics.items()}
+    assert result.auc == normalized_auc(result.steps, result.metrics["success_rate"])
+    assert result.outcome == "completed" and result.resumed_from is None
+    assert result.diverged_step is None and result.seconds > 0
+    assert all(d > 0 for d in result.metrics["final_distance"])
+
+
+def test_state_oracle_runs() -> None:
+    result = agent.train(tiny(method="state", image_size=None))
+    assert result.steps == (0, 100, 200) and result.outcome == "completed"
+
+
+def test_divergence_stops_the_trial_and_fills_the_grid(monkeypatch: pytest.MonkeyPatch) -> None:
+    from agent import sac
+
+    real_update = sac.SAC.update
+
+    def update(self: sac.SAC, batch: dict) -> dict:
+        losses = real_update(self, batch)
+        if self.num_updates == 30:  # updates run after env steps 50, 51, ...: the 30th at 79
+            losses["actor_loss"] = torch.tensor(float("nan"))
+        return losses
+
+    monkeypatch.setattr(sac.SAC, "update", update)
+    report = Recorder()
+    result = agent.train(tiny(total_steps=300), report)
+    assert result.outcome == "diverged"
+    assert (result.diverged_step, result.diverged_loss) == (79, "actor_loss")
+    assert result.steps == (0, 100, 200, 300) and report.calls == [0, 100, 200, 300]
+    assert result.metrics["success_rate"][1:] == (0.0, 0.0, 0.0)
+    assert all(math.isnan(v) for v in result.metrics["final_distance"][1:])
+    assert result.auc == normalized_auc(result.steps, result.metrics["success_rate"])
+
+
+def test_resume_gives_the_same_curve(tmp_path: Path) -> None:
+    config = tiny(total_steps=150, eval_every=50, checkpoint_every=50, checkpoint_dir=str(tmp_path))
+    crash = Recorder(crash_at=100)  # after the checkpoint at step 50, before the one at 100
+    with pytest.raises(KeyboardInterrupt):
+        agent.train(config, crash)
+    resumed_report = Recorder()
+    resumed = agent.train(config, resumed_report)
+    assert resumed.resumed_from == 50
+    assert resumed_report.calls == [0, 50, 100, 150]  # checkpointed points re-reported
+    assert resumed_report.points == crash.points | resumed_report.points
+
+    straight = agent.train(dataclasses.replace(config, checkpoint_dir=None))
+    assert straight.steps == resumed.steps
+    assert straight.metrics == resumed.metrics and straight.auc == resumed.auc
+
+
+def test_corrupt_checkpoint_is_ignored(tmp_path: Path) -> None:
+    # no updates (seed_steps = total_steps): this test is about the file, not the learner
+    config = tiny(
+        total_steps=100, seed_steps=100, checkpoint_every=50, checkpoint_dir=str(tmp_path)
+    )
+    first = agent.train(config)
+    path = tmp_path / "checkpoint.pt"
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one flipped byte in the middle
+    path.write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match="corrupt checkpoint"):
+        again = agent.train(config)
+    assert again.resumed_from is None and again.metrics == first.metrics
+    path.write_bytes(path.read_bytes()[:1000])  # truncated
+    with pytest.warns(UserWarning, match="corrupt checkpoint"):
+        assert agent.train(config).resumed_from is None
+
+
+def test_checkpoint_of_another_config_is_refused(tmp_path: Path) -> None:
+    config = tiny(
+        total_steps=100, seed_steps=100, checkpoint_every=50, checkpoint_dir=str(tmp_path)
+    )
+    agent.train(config)
+    other = dataclasses.replace(config, seed=1)
+    with pytest.raises(ValueError, match="checkpoint_dir"):
+        agent.train(other)
+
+
+def test_bad_names_are_clear_errors() -> None:
+    with pytest.raises(ValueError, match="method"):
+        agent.train(tiny(method="pixle"))
+    with pytest.raises(ValueError, match="unknown env"):
+        agent.train(tiny(env="point_rech"))
+
+
+def _env_exists(name: str) -> bool:
+    return importlib.util.find_spec(ENV_ENTRY_POINTS[name].split(":")[0]) is not None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env", [e for e in ENV_NAMES if _env_exists(e)])
+@pytest.mark.parametrize("method", ["pixel", "state"])
+def test_every_env_end_to_end(env: str, method: str) -> None:
+    config = tiny(
+        env=env,
+        image_size=None,
+        method=method,
+        total_steps=50,
+        seed_steps=40,
+        eval_every=50,
+        eval_episodes=1,
+    )
+    result = agent.train(config)
+    assert result.steps == (0, 50) and result.outcome == "completed"
+    assert all(len(v) == 2 for v in result.metrics.values())
+    assert "success_rate" in result.metrics
+
+
+@pytest.mark.parametrize("method", ["conv", "vae"])
+def test_encoder_methods(method: str) -> None:
+    params = {"vae": {"num_images": 64, "epochs": 1, "latent_dim": 8, "batch_size": 32}}
+    config = tiny(
+        method=method, total_steps=50, eval_every=50, encoder_params=params.get(method, {})
+    )
+    assert agent.train(config).outcome == "completed"

@@ -1,0 +1,233 @@
+"""`sweeper aggregate`: the tidy frame, the statistics and the written files, checked
+against the storage (a synthetic study with every trial fate, and the CI study)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import optuna
+import pandas as pd
+import pytest
+from optuna.trial import TrialState
+from optuna_dashboard import get_note, save_note
+from synthetic_study import write_synthetic_study
+
+from agent.metrics import normalized_auc
+from sweeper import cli
+from sweeper.aggregate import (
+    NOTE_BEGIN,
+    NOTE_END,
+    auc_table,
+    improvement_table,
+    load_study_frame,
+    method_curves,
+    replace_note_section,
+)
+from sweeper.stats import iqm
+from sweeper.storage import current_trials, ledger
+
+METHODS = ("pixel", "linear", "vae")
+FIGURES = ("curves.png", "auc.png", "trials_success_rate.png", "trials_final_hand_distance.png")
+CSVS = ("frame.csv", "curves.csv", "auc_table.csv", "improvement.csv")
+
+
+def write_spec(path: Path, study: str, extra: str = "") -> Path:
+    """A valid spec named ``study`` (aggregate needs only its name, storage and seed)."""
+    text = (Path(__file__).parent.parent / "studies" / "ci.yaml").read_text()
+    path.write_text(text.replace("study: ci", f"study: {study}") + extra)
+    return path
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory):
+    """A synthetic study (a note of the user's already in it), aggregated by the CLI."""
+    root = tmp_path_factory.mktemp("aggregate")
+    url = f"sqlite:///{root / 'study.db'}"
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = write_synthetic_study(url, "syn", methods=METHODS, configs=4, seeds=(0, 1))
+    save_note(study, "my own notes")
+    spec = write_spec(root / "syn.yaml", "syn")
+    out = root / "out"
+    assert cli.main(["aggregate", str(spec), "--storage", url, "--out", str(out)]) == 0
+    return url, out
+
+
+def trials_of(url: str, name: str):
+    return optuna.load_study(study_name=name, storage=url).get_trials()
+
+
+def test_frame_matches_the_storage(synthetic):
+    url, _ = synthetic
+    frame = load_study_frame(url, "syn")
+    trials = trials_of(url, "syn")
+    current = {t.number for t in current_trials(trials).values()}
+    assert frame["trial"].nunique() == len(trials) == 2 * 4 * 3 + 1  # + the reaped attempt
+    assert frame.attrs["metrics"][0] == "success_rate" and len(frame.attrs["metrics"]) == 5
+    for trial in trials:
+        rows = frame[frame["trial"] == trial.number]
+        first = rows.iloc[0]
+        assert first["state"] == trial.state.name
+        assert first["counted"] == (trial.number in current)
+        for key in ("method", "key", "config_id", "seed", "outcome"):
+            assert first[key] == trial.user_attrs.get(key) or pd.isna(first[key])
+        if trial.value is None:
+            assert math.isnan(first["auc"])
+        else:
+            assert first["auc"] == pytest.approx(trial.value)
+        for name, value in trial.params.items():
+            assert first[f"params_{name}"] == value
+        curve = trial.user_attrs["curve"]
+        assert rows["step"].tolist() == curve["step"]
+        for metric in frame.attrs["metrics"]:
+            expected = np.array(curve[metric], dtype=float)
+            np.testing.assert_allclose(rows[metric].to_numpy(), expected, equal_nan=True)
+        assert dict(zip(rows["step"], rows["success_rate"], strict=True)) == pytest.approx(
+            trial.intermediate_values
+        )
+
+
+def test_auc_table_matches_the_storage(synthetic):
+    url, out = synthetic
+    frame = load_study_frame(url, "syn")
+    table = auc_table(frame, driver_alive=False).set_index("method")
+    trials = trials_of(url, "syn")
+    plan = frame.attrs["study_attrs"]["plan"]
+    counts = ledger(plan, trials, driver_alive=False)  # sweeper status's ledger
+    done = [t for t in current_trials(trials).values() if t.state == TrialState.COMPLETE]
+    assert list(table.index) == list(METHODS)
+    for method in METHODS:
+        row = table.loc[method]
+        for column in ("planned", "done", "diverged", "running", "failed", "left"):
+            assert row[column] == getattr(counts[method], column), (method, column)
+        aucs = np.array([t.value for t in done if t.user_attrs["method"] == method])
+        assert row["n"] == aucs.size
+        assert row["mean"] == pytest.approx(aucs.mean())
+        assert row["std"] == pytest.approx(aucs.std(ddof=1))
+        assert row["median"] == pytest.approx(np.median(aucs))
+        assert row["iqm"] == pytest.approx(iqm(aucs))
+        assert row["iqm_low"] <= row["iqm"] <= row["iqm_high"]
+        assert row["best_auc"] == pytest.approx(aucs.max())
+        best = next(t for t in done if t.number == row["best_trial"])
+        assert best.value == pytest.approx(aucs.max())
+        assert f"lr={best.params['lr']}" in row["best_params"]
+    assert table.loc["vae", "diverged"] == 1 and table.loc["linear", "failed"] == 1
+    assert table.loc["vae", "left"] == 1  # RUNNING without a live driver
+    written = pd.read_csv(out / "auc_table.csv").set_index("method")
+    pd.testing.assert_frame_equal(written, table, check_dtype=False)
+
+
+def test_improvement_is_paired_by_config_and_seed(synthetic):
+    url, out = synthetic
+    frame = load_study_frame(url, "syn")
+    done = [t for t in current_trials(trials_of(url, "syn")).values() if t.value is not None]
+    auc = {
+        (t.user_attrs["method"], t.user_attrs["config_id"], t.user_attrs["seed"]): t.value
+        for t in done
+    }
+    table = improvement_table(frame)
+    assert len(table) == 6
+    for row in table.itertuples():
+        pairs = [
+            (auc[row.method, c, s], auc[row.versus, c, s])
+            for (m, c, s) in auc
+            if m == row.method and (row.versus, c, s) in auc
+        ]
+        wins = sum((x > y) + 0.5 * (x == y) for x, y in pairs)
+        assert row.pairs == len(pairs) and row.probability == pytest.approx(wins / len(pairs))
+    written = pd.read_csv(out / "improvement.csv")
+    pd.testing.assert_frame_equal(written, table, check_dtype=False)
+
+
+def test_curves_are_means_over_done_trials(synthetic):
+    url, out = synthetic
+    frame = load_study_frame(url, "syn")
+    curves = method_curves(frame)
+    done = [
+        t for t in current_trials(trials_of(url, "syn")).values() if t.state == TrialState.COMPLETE
+    ]
+    for method in METHODS:
+        mine = [t.user_attrs["curve"] for t in done if t.user_attrs["method"] == method]
+        values = np.array([c["final_hand_distance"] for c in mine], dtype=float)
+        part = curves[(curves["method"] == method) & (curves["metric"] == "final_hand_distance")]
+        np.testing.assert_allclose(part["mean"], np.nanmean(values, axis=0))
+        np.testing.assert_allclose(part["std"], np.nanstd(values, axis=0, ddof=1))
+        assert part["n"].tolist() == np.isfinite(values).sum(axis=0).tolist()
+    written = pd.read_csv(out / "curves.csv")
+    pd.testing.assert_frame_equal(written, curves, check_dtype=False)
+
+
+def test_written_files_and_dashboard_note(synthetic):
+    url, out = synthetic
+    frame = pd.read_csv(out / "frame.csv")
+    loaded = load_study_frame(url, "syn")
+    assert len(frame) == len(loaded)
+    np.testing.assert_allclose(frame["success_rate"], loaded["success_rate"])
+    np.testing.assert_allclose(frame["auc"], loaded["auc"], equal_nan=True)
+    for name in FIGURES:
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    report = (out / "report.md").read_text()
+    assert "**Partial study**" in report and "| vae | 8 | 7 | 1 |" in report
+    for link in [part.split(")")[0] for part in report.split("](")[1:]]:
+        assert (out / link).is_file(), link
+    note = get_note(optuna.load_study(study_name="syn", storage=url))
+    assert note.startswith("my own notes") and note.count(NOTE_BEGIN) == 1
+    assert "| pixel | 8 | 8 |" in note and NOTE_END in note
+
+
+def test_note_section_is_replaced_not_repeated():
+    section = f"{NOTE_BEGIN}\nnew\n{NOTE_END}"
+    assert replace_note_section("", section) == section
+    first = replace_note_section("mine", section)
+    assert first == f"mine\n\n{section}"
+    again = replace_note_section(first + "\nafter", f"{NOTE_BEGIN}\nnewer\n{NOTE_END}")
+    assert again == f"mine\n\n{NOTE_BEGIN}\nnewer\n{NOTE_END}\nafter"
+
+
+def test_unknown_empty_or_missing_study_is_a_clear_error(synthetic, tmp_path, capsys):
+    url, _ = synthetic
+    with pytest.raises(ValueError, match=r"study 'nope' not found .* it has: syn"):
+        load_study_frame(url, "nope")
+    with pytest.raises(ValueError, match="no database file"):
+        load_study_frame(f"sqlite:///{tmp_path / 'absent.db'}", "syn")
+    optuna.create_study(storage=url, study_name="empty")
+    with pytest.raises(ValueError, match="'empty' has no trials yet"):
+        load_study_frame(url, "empty")
+    spec = write_spec(tmp_path / "empty.yaml", "empty")
+    assert cli.main(["aggregate", str(spec), "--storage", url, "--no-dashboard"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("sweeper aggregate: study 'empty' has no trials") and "\n" not in err
+    bad = write_spec(tmp_path / "bad.yaml", "syn", extra="trials_per_methd: 3\n")
+    assert cli.main(["aggregate", str(bad)]) == 2
+    assert "trials_per_methd" in capsys.readouterr().err
+
+
+def test_ci_study_aggregates_from_its_storage(ci_study, monkeypatch):
+    """After `sweeper launch studies/ci.yaml`: `sweeper aggregate studies/ci.yaml`."""
+    monkeypatch.chdir(ci_study.workdir)
+    argv = ["aggregate", str(ci_study.spec), "--storage", ci_study.storage_url]
+    assert cli.main(argv) == 0
+    out = ci_study.workdir / "runs" / "ci" / "aggregate"  # spec.run_dir / "aggregate"
+    trials = trials_of(ci_study.storage_url, "ci")
+    frame = pd.read_csv(out / "frame.csv")
+    table = pd.read_csv(out / "auc_table.csv").set_index("method")
+    assert sorted(frame["key"].unique()) == sorted(t.user_attrs["key"] for t in trials)
+    for trial in trials:
+        rows = frame[frame["trial"] == trial.number]
+        steps, success = rows["step"].tolist(), rows["success_rate"].tolist()
+        assert dict(zip(steps, success, strict=True)) == pytest.approx(trial.intermediate_values)
+        assert rows["auc"].iloc[0] == pytest.approx(trial.value)
+        assert trial.value == pytest.approx(normalized_auc(steps, success))
+        method = trial.user_attrs["method"]
+        assert table.loc[method, "done"] == 1 and table.loc[method, "n"] == 1
+        assert table.loc[method, "mean"] == pytest.approx(trial.value)
+        assert table.loc[method, "best_trial"] == trial.number
+    curves = pd.read_csv(out / "curves.csv")
+    assert set(curves["metric"]) == {"success_rate", "final_distance"}
+    for name in ("curves.png", "auc.png", "trials_success_rate.png", "trials_final_distance.png"):
+        assert (out / name).stat().st_size > 10_000, name
+    report = (out / "report.md").read_text()
+    assert "# Study `ci`" in report and "![AUC per method](auc.png)" in report
+    assert json.loads(json.dumps(table.index.tolist())) == ["pixel", "linear"]

@@ -1,0 +1,225 @@
+"""Encoder diagnostics: Algorithm 1 and the analyses on envs with known answers, and the CLI."""
+
+from __future__ import annotations
+
+import re
+
+import gymnasium as gym
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from agent.envs import make_env
+from encoders import diagnostics as dx
+from encoders import make_encoder
+from sweeper.cli import main
+
+torch.set_num_threads(1)
+
+
+class StripeEnv:
+    """A fake env whose image shows its state exactly: row d of the red channel holds
+    ``s_d * 255`` dithered along the row, so the PIXEL latent distance is ``||s - g||``
+    times a constant (up to rounding). With ``arm`` it also has an arm (drawn in the
+    green channel unless ``draw_arm`` is False), like fetch_push."""
+
+    state_names = ("a", "b", "c")
+
+    def __init__(self, arm: bool = False, draw_arm: bool = True) -> None:
+        self.state = np.zeros(3)
+        self.arm = np.zeros(3)
+        self.draw_arm = draw_arm
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
+        self.rng = np.random.default_rng(0)
+        if arm:
+            self.gripper_position = lambda: self.arm.copy()
+            self.set_gripper_position = self._set_arm
+
+    def _set_arm(self, xyz: np.ndarray) -> np.ndarray:
+        self.arm = np.asarray(xyz, np.float64)
+        return self.arm.copy()
+
+    def reset(self, *, seed: int | None = None):
+        self.rng = np.random.default_rng(seed)
+        self.state, self.goal = self.rng.uniform(0, 1, 3), self.rng.uniform(0, 1, 3)
+        return {}, {}
+
+    def step(self, action):
+        self.state = np.clip(self.state + 0.1 * np.asarray(action), 0, 1)
+        info = {
+            "is_success": float(np.linalg.norm(self.state - self.goal) < 0.1),
+            "a_success": float(self.state[0] > 0.95),
+            "distance": 0.0,
+        }
+        return {}, 0.0, False, False, info
+
+    def state_bounds(self):
+        return np.zeros(3), np.ones(3)
+
+    def controllable_state(self) -> np.ndarray:
+        return self.state.copy()
+
+    def set_controllable_state(self, state) -> np.ndarray:
+        self.state = np.clip(np.asarray(state, np.float64), 0, 1)
+        return self.state.copy()
+
+    def render_image(self) -> np.ndarray:
+        dither = (np.arange(64) + 0.5) / 64
+        image = np.zeros((32, 64, 3), np.uint8)
+        image[:3, :, 0] = np.floor(self.state[:, None] * 250 + dither)
+        if self.draw_arm:
+            image[3:6, :, 1] = np.floor(np.clip(self.arm, 0, 1)[:, None] * 250 + dither)
+        return image
+
+
+def pixel(shape=(32, 64, 3)):
+    return {"pixel": make_encoder("pixel", shape)}
+
+
+# ---- Algorithm 1 ------------------------------------------------------------------------
+def test_least_squares_recovers_a_known_gradient() -> None:
+    def f(s: np.ndarray) -> float:
+        return np.sin(s[0]) + s[1] ** 2 + 0.5 * s[0] * s[2] - np.exp(0.3 * s[3])
+
+    s = np.array([0.3, -0.7, 1.2, 0.5])
+    grad = np.array([np.cos(s[0]) + 0.5 * s[2], 2 * s[1], 0.5 * s[0], -0.3 * np.exp(0.3 * s[3])])
+    steps = 1e-3 * dx.random_directions(np.random.default_rng(0), 12, 4)
+    delta_r = np.array([f(s + d) - f(s) for d in steps])
+    estimate = dx.least_squares_gradient(steps, delta_r)
+    assert dx.cosine_distance(estimate, grad) < 0.01
+    np.testing.assert_allclose(estimate, grad, rtol=0.01)
+
+
+def test_hand_computed_fixtures() -> None:
+    np.testing.assert_allclose(dx.true_reward_gradient([3.0, 4.0], [0.0, 0.0]), [-0.6, -0.8])
+    np.testing.assert_allclose(dx.least_squares_gradient(np.eye(2), np.array([1.0, 2.0])), [1, 2])
+    assert dx.cosine_distance(np.array([1.0, 0]), np.array([2.0, 0])) == pytest.approx(0)
+    assert dx.cosine_distance(np.array([1.0, 0]), np.array([-1.0, 0])) == pytest.approx(2)
+    assert dx.cosine_distance(np.array([1.0, 0]), np.array([0, 3.0])) == pytest.approx(1)
+    assert dx.cosine_distance(np.zeros(2), np.array([0, 3.0])) == 1.0
+    d = dx.random_directions(np.random.default_rng(0), 5, 3)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
+
+
+def test_gradient_agreement_is_exact_when_the_image_shows_the_state() -> None:
+    table = dx.gradient_agreement(StripeEnv(), pixel(), num_states=10, alpha=0.05, progress=False)
+    assert list(table.columns) == ["encoder", "metric", "value", "sample", "distance"]
+    assert len(table) == 10 and (table["metric"] == "cosine_distance").all()
+    assert table["value"].max() < 0.01
+
+
+def test_gradient_agreement_on_point_reach_near_the_goal() -> None:
+    env = make_env("point_reach", image_size=32, obs_mode="state")
+    table = dx.gradient_agreement(env, pixel((32, 32, 3)), num_states=60, progress=False)
+    # the blob images overlap only near the goal: there the pixel reward points the right way
+    near = table[table["distance"] < 0.5]
+    assert len(near) >= 5 and near["value"].mean() < 0.1
+
+
+# ---- the other analyses -----------------------------------------------------------------
+def test_random_exploration_counts_any_success_flag() -> None:
+    table = dx.random_exploration(StripeEnv(), episodes=20, steps=10, progress=False)
+    rates = dict(zip(table["metric"], table["value"], strict=True))
+    assert list(rates) == ["success_rate", "is_success_rate", "a_success_rate"]
+    assert rates["success_rate"] >= max(rates["is_success_rate"], rates["a_success_rate"])
+    assert 0 < rates["a_success_rate"] < 1
+    again = dx.random_exploration(StripeEnv(), episodes=20, steps=10, progress=False)
+    pd.testing.assert_frame_equal(table, again)
+
+
+def test_reward_correlation() -> None:
+    summary, pairs = dx.reward_correlation(StripeEnv(), pixel(), num_pairs=50, progress=False)
+    values = summary.set_index("metric")["value"]
+    assert values["pearson"] > 0.999 and values["spearman"] > 0.999
+    assert list(pairs.columns) == ["encoder", "pair", "true_reward", "latent_reward"]
+    assert len(pairs) == 50 and (pairs["true_reward"] <= 0).all()
+
+
+def test_grid_topology() -> None:
+    summary, emb = dx.grid_topology(
+        StripeEnv(), pixel(), grid_size=7, n_neighbors=5, progress=False
+    )
+    values = summary.set_index("metric")["value"]
+    assert values["procrustes_disparity"] < 0.01 and values["trustworthiness"] > 0.99
+    assert len(emb) == 49 and {"i", "j", "state_a", "state_b", "iso_x", "iso_y"} <= set(emb)
+    with pytest.raises(ValueError, match="grid dims must differ"):
+        dx.grid_topology(StripeEnv(), pixel(), grid_size=7, dims=(1, 1))
+
+
+def test_arm_object_variance() -> None:
+    env = StripeEnv(arm=True)
+    assert dx.has_arm(env) and not dx.has_arm(StripeEnv())
+    table = dx.arm_object_variance(env, pixel(), num_states=20, progress=False)
+    totals = table[table["dim"] < 0].set_index("metric")["value"]
+    assert 0 < totals["arm_share"] < 1
+    assert (table["metric"] == "arm_variance").sum() == 32 * 64 * 3
+    hidden = dx.arm_object_variance(
+        StripeEnv(arm=True, draw_arm=False), pixel(), 20, progress=False
+    )
+    assert hidden.set_index("metric").loc["arm_share", "value"] == 0.0
+    with pytest.raises(ValueError, match="gripper_position"):
+        dx.arm_object_variance(StripeEnv(), pixel())
+
+
+def test_random_frames() -> None:
+    env = make_env("point_reach", image_size=32, obs_mode="state")
+    frames = dx.random_frames(env, 60, seed=3, progress=False)
+    assert frames.shape == (60, 32, 32, 3) and frames.dtype == np.uint8
+    np.testing.assert_array_equal(frames, dx.random_frames(env, 60, seed=3, progress=False))
+    assert not np.array_equal(frames[1], frames[2])  # the policy moves the point
+
+
+# ---- the CLI ----------------------------------------------------------------------------
+SMALL = ["--episodes", "3", "--gradient-states", "3", "--directions", "4", "--pairs", "5",
+         "--grid-size", "5", "--variance-states", "3", "--quiet"]  # fmt: skip
+
+
+def test_cli_writes_its_files(tmp_path, capsys) -> None:
+    code = main(["diagnose", "--env", "point_reach", "--encoders", "pixel,cvae",
+                 "--option", "cvae.epochs=1", "--option", "cvae.num_images=20",
+                 "--image-size", "32", "--out", str(tmp_path / "{env}"), *SMALL])  # fmt: skip
+    assert code == 0
+    out = tmp_path / "point_reach"
+    for stem in ("exploration", "gradient", "correlation", "topology"):
+        assert (out / f"{stem}.png").stat().st_size > 1000
+        table = pd.read_csv(out / f"{stem}.csv")
+        assert list(table.columns[:4]) == ["env", "encoder", "metric", "value"]
+    summary = pd.read_csv(out / "summary.csv")
+    assert set(summary["encoder"]) == {"none", "pixel", "cvae"}
+    assert "mean_cosine_distance" in set(summary["metric"])
+    assert "point_reach: wrote" in capsys.readouterr().out
+
+
+def test_cli_on_fetch_push(tmp_path) -> None:
+    code = main(["diagnose", "--env", "fetch_push", "--encoders", "pixel", "--image-size", "32",
+                 "--out", str(tmp_path), *SMALL])  # fmt: skip
+    assert code == 0
+    assert (tmp_path / "variance.png").exists()
+    summary = pd.read_csv(tmp_path / "summary.csv")
+    assert "arm_share" in set(summary["metric"])
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--encoders", "pixel,cnv"], "unknown encoder 'cnv'.*known encoders: pixel, linear"),
+        (["--env", "fetch_rech"], "unknown env 'fetch_rech'.*known envs: point_reach"),
+        (["--encoders", "vae", "--option", "vae.latnt_dim=8"], "valid options: latent_dim"),
+        (["--encoders", "vae", "--option", "vae.latent_dim=12"], "latent_dim must be one of"),
+        (["--option", "beta=3"], "ENCODER.KEY=VALUE"),
+        (["--option", "vae.beta=3"], "not in --encoders"),
+        (["--analyses", "gradient,isomap"], "unknown analysis 'isomap'"),
+        (["--grid-dims", "x,q"], "unknown state 'q'; states: x, y"),
+        (["--pairs", "0"], "--pairs must be positive"),
+    ],
+)
+def test_cli_bad_input_exits_2_with_a_message(args, message, capsys, tmp_path) -> None:
+    argv = ["diagnose", "--env", "point_reach", "--out", str(tmp_path), *args]
+    if "--env" in args:
+        argv = ["diagnose", "--out", str(tmp_path), *args]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("sweeper diagnose: error:") and len(err.strip().splitlines()) == 1
+    assert re.search(message, err)
+    assert not any(tmp_path.iterdir())

@@ -1,0 +1,214 @@
+"""Crashes: a worker killed mid-trial, a driver killed mid-study, Ctrl-C; the ledger stays exact."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import optuna
+import pytest
+import ray
+import sqlalchemy
+import torch
+import yaml
+from optuna.trial import TrialState
+
+from agent import train
+from sweeper.launch import launch, prepare
+from sweeper.storage import open_storage
+
+ROOT = Path(__file__).resolve().parent.parent
+CI_SPEC = ROOT / "studies" / "ci.yaml"
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+
+
+def write_spec(path: Path, **changes) -> Path:
+    """studies/ci.yaml with top-level fields replaced (``execution`` and ``budget`` merged)."""
+    data = yaml.safe_load(CI_SPEC.read_text())
+    for name in ("execution", "budget"):
+        data[name] = {**data[name], **changes.pop(name, {})}
+    data.update(changes)
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def trials_of(url: str, name: str) -> list[optuna.trial.FrozenTrial]:
+    """The study's trials, or [] while the driver has not created it yet."""
+    try:
+        storage = open_storage(url, create=False)  # the driver creates the tables
+        try:
+            return optuna.load_study(study_name=name, storage=storage).get_trials()
+        finally:
+            storage.engine.dispose()
+    except (KeyError, sqlalchemy.exc.OperationalError, optuna.exceptions.StorageInternalError):
+        return []
+
+
+def wait_for(condition, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def check_exact_budget(trials, keys: list[str]) -> dict[str, optuna.trial.FrozenTrial]:
+    """Every planned key COMPLETE exactly once; return key -> its COMPLETE trial."""
+    complete = [t for t in trials if t.state == TrialState.COMPLETE]
+    counts = Counter(t.user_attrs["key"] for t in complete)
+    assert sorted(counts) == sorted(keys)
+    assert set(counts.values()) == {1}, counts
+    assert not [t for t in trials if t.state in (TrialState.RUNNING, TrialState.WAITING)]
+    return {t.user_attrs["key"]: t for t in complete}
+
+
+@pytest.mark.slow
+def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path):
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    spec_path = write_spec(
+        tmp_path / "spec.yaml",
+        study="faults",
+        methods={"pixel": {}},
+        seeds=[0, 1],
+        storage=url,
+        checkpoints=str(tmp_path / "checkpoints"),
+        budget={"env_steps": 400},
+        execution={"retries": 1, "checkpoint_every": 100},
+    )
+    spec, plan = prepare(str(spec_path))
+    victim = plan.entries[0]
+    checkpoint = Path(victim.trial_config.checkpoint_dir) / "checkpoint.pt"
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        codes = []
+        driver = threading.Thread(target=lambda: codes.append(launch(spec, plan)))
+        driver.start()
+
+        def running_worker():
+            trial = next((t for t in trials_of(url, "faults") if t.user_attrs.get("key") == victim.key), None)
+            if trial is None or trial.state != TrialState.RUNNING or not checkpoint.exists():
+                return None
+            return trial.user_attrs.get("worker")
+
+        worker = wait_for(running_worker, 240, "a checkpoint of the victim trial")
+        os.kill(worker["pid"], signal.SIGKILL)
+        driver.join(timeout=300)
+        assert not driver.is_alive()
+    finally:
+        ray.shutdown()
+    assert codes == [0]
+    trials = trials_of(url, "faults")
+    assert len(trials) == 2  # a retry stays in its Optuna trial
+    by_key = check_exact_budget(trials, plan.keys())
+    retried = by_key[victim.key]
+    assert retried.user_attrs["attempts"] == 2
+    assert len(retried.user_attrs["worker_deaths"]) == 1
+    assert "ActorDiedError" in retried.user_attrs["worker_deaths"][0]
+    assert retried.user_attrs["worker"]["pid"] != worker["pid"]
+    assert retried.user_attrs["resumed_from"] >= 100
+    assert by_key[plan.entries[1].key].user_attrs["attempts"] == 1
+
+    torch.set_num_threads(1)
+    reference = train(dataclasses.replace(victim.trial_config, checkpoint_dir=None))
+    curve = retried.user_attrs["curve"]
+    assert curve["step"] == list(reference.steps)
+    for name, values in reference.metrics.items():
+        assert curve[name] == list(values), name
+    assert retried.value == reference.auc
+    assert retried.intermediate_values == dict(
+        zip(reference.steps, reference.metrics["success_rate"], strict=True)
+    )
+
+
+def start_driver(spec: Path, log: Path) -> subprocess.Popen:
+    """`sweeper launch spec` in its own process group (so its local Ray can be cleaned up)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "sweeper.cli", "launch", str(spec)],
+        stdout=log.open("a"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        cwd=spec.parent,
+    )
+
+
+def kill_group(process: subprocess.Popen, sig: int) -> None:
+    try:
+        os.killpg(process.pid, sig)
+    except ProcessLookupError:
+        pass
+
+
+@pytest.mark.slow
+def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path):
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    spec = write_spec(
+        tmp_path / "spec.yaml",
+        study="driver",
+        trials_per_method=2,
+        storage=url,
+        checkpoints=str(tmp_path / "checkpoints"),
+    )
+    keys = prepare(str(spec))[1].keys()
+    log = tmp_path / "driver.log"
+
+    def done():
+        return [t for t in trials_of(url, "driver") if t.state == TrialState.COMPLETE]
+
+    # 1. SIGKILL the driver (and, as a dead machine would, its local Ray) after a trial ends.
+    first = start_driver(spec, log)
+    try:
+        wait_for(done, 240, "a first complete trial")
+        first.send_signal(signal.SIGKILL)
+        first.wait(timeout=30)
+    finally:
+        kill_group(first, signal.SIGKILL)
+    finished = {t.number: t.datetime_complete for t in done()}
+
+    # 2. Relaunch, then Ctrl-C it while trials run: exit 130, in-flight trials interrupted.
+    second = start_driver(spec, log)
+    try:
+        def running_now():
+            return [
+                t
+                for t in trials_of(url, "driver")
+                if t.state == TrialState.RUNNING and "worker" in t.user_attrs
+                and t.number > max(finished)
+            ]
+
+        wait_for(running_now, 240, "a trial running under the second driver")
+        kill_group(second, signal.SIGINT)  # as a terminal does: the whole group
+        assert second.wait(timeout=120) == 130, log.read_text()
+    finally:
+        kill_group(second, signal.SIGKILL)
+    trials = trials_of(url, "driver")
+    assert not [t for t in trials if t.state == TrialState.RUNNING]
+    reaped = [t for t in trials if t.user_attrs.get("outcome") == "interrupted"]
+    assert any("its driver stopped" in t.user_attrs["error"] for t in reaped)  # left by run 1
+    assert any("stopped by the user" in t.user_attrs["error"] for t in reaped)  # run 2's Ctrl-C
+
+    # 3. Relaunch to the end: finished trials are not re-run, the budget is exact.
+    third = start_driver(spec, log)
+    try:
+        assert third.wait(timeout=300) == 0, log.read_text()
+    finally:
+        kill_group(third, signal.SIGKILL)
+    trials = trials_of(url, "driver")
+    by_key = check_exact_budget(trials, keys)
+    for number, when in finished.items():
+        assert trials[number].state == TrialState.COMPLETE
+        assert trials[number].datetime_complete == when
+    for trial in trials:
+        if "superseded_by" in trial.user_attrs:
+            successor = trials[trial.user_attrs["superseded_by"]]
+            assert successor.user_attrs["key"] == trial.user_attrs["key"]
+            assert trial.number in successor.user_attrs["supersedes"]
+    assert all(t.user_attrs["curve"]["step"] == [0, 100, 200, 300] for t in by_key.values())

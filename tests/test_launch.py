@@ -1,0 +1,236 @@
+"""`sweeper launch` and `sweeper status` end to end, on one local Ray for the module."""
+
+from __future__ import annotations
+
+import math
+import sys
+import uuid
+from pathlib import Path
+
+import optuna
+import psycopg
+import pytest
+import ray
+import yaml
+from optuna.trial import TrialState
+
+from agent.config import TrialResult
+from agent.metrics import normalized_auc
+from sweeper import cli
+from sweeper.launch import launch, prepare
+from sweeper.storage import StudyStore, open_storage
+
+ROOT = Path(__file__).resolve().parent.parent
+CI_SPEC = ROOT / "studies" / "ci.yaml"
+PG_ADMIN = "host=127.0.0.1 port=5432 dbname=test user=postgres"
+GRID = [0, 100, 200, 300]  # studies/ci.yaml: env_steps 300, eval_every 100
+
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake trains below
+
+
+@pytest.fixture(scope="module", autouse=True)
+def local_ray():
+    """One local Ray for the module; `launch` uses it and leaves it running."""
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+def write_spec(path: Path, **changes) -> Path:
+    """studies/ci.yaml with top-level fields replaced."""
+    data = yaml.safe_load(CI_SPEC.read_text())
+    data.update(changes)
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def load(url: str, name: str = "ci") -> optuna.Study:
+    return optuna.load_study(study_name=name, storage=open_storage(url))
+
+
+def check_ci_study(study: optuna.Study) -> None:
+    """Exactly the two planned trials, complete, with curves, AUCs and attrs."""
+    trials = study.get_trials()
+    assert [t.state for t in trials] == [TrialState.COMPLETE] * 2
+    assert sorted(t.user_attrs["key"] for t in trials) == ["linear/0/0", "pixel/0/0"]
+    for trial in trials:
+        attrs = trial.user_attrs
+        curve = attrs["curve"]
+        assert curve["step"] == GRID
+        assert set(curve) == {"step", "success_rate", "final_distance"}
+        assert trial.intermediate_values == dict(zip(GRID, curve["success_rate"], strict=True))
+        assert trial.value == pytest.approx(normalized_auc(GRID, curve["success_rate"]))
+        assert attrs["outcome"] == "completed"
+        assert attrs["attempts"] == 1
+        assert attrs["method"] == attrs["key"].split("/")[0]
+        assert (attrs["config_id"], attrs["seed"]) == (0, 0)
+        assert attrs["plan_hash"] == study.user_attrs["plan_hash"]
+        assert attrs["worker"]["pid"] > 0
+        assert "hidden_sizes" in trial.params
+    assert "linear.latent_dim" in next(t for t in trials if t.user_attrs["method"] == "linear").params
+    study_attrs = study.user_attrs
+    assert study_attrs["plan"] == ["linear/0/0", "pixel/0/0"]
+    assert study_attrs["spec"]["study"] == "ci"
+    assert study_attrs["env"] == "point_reach"
+    assert study_attrs["metric_names"] == ["success_rate", "final_distance"]
+    assert study_attrs["versions"]["optuna"] == optuna.__version__
+    assert study_attrs["revision"]
+    assert study_attrs["driver"] is None  # released
+
+
+def test_launch_ci_end_to_end_then_status_and_resume(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)  # the default storage and checkpoints go under runs/ci/
+    assert cli.main(["launch", str(CI_SPEC)]) == 0
+    url = "sqlite:///runs/ci/study.db"
+    study = load(url)
+    check_ci_study(study)
+    assert (tmp_path / "runs" / "ci" / "checkpoints").is_dir()
+
+    capsys.readouterr()
+    assert cli.main(["status", str(CI_SPEC)]) == 0
+    out = capsys.readouterr().out
+    rows = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line}
+    # planned, done, diverged, running, failed, left
+    assert rows["linear"] == ["1", "1", "0", "0", "0", "0"]
+    assert rows["pixel"] == ["1", "1", "0", "0", "0", "0"]
+    assert "driver: not running" in out
+
+    before = [(t.number, t.datetime_complete) for t in study.get_trials()]
+    assert cli.main(["launch", str(CI_SPEC)]) == 0  # nothing left: nothing re-run
+    assert "2 of 2 trials done, 0 to run" in capsys.readouterr().err
+    assert [(t.number, t.datetime_complete) for t in load(url).get_trials()] == before
+
+
+def test_launch_on_postgresql(tmp_path):
+    schema = f"sweeper_test_{uuid.uuid4().hex[:10]}"
+    with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
+        connection.execute(f"CREATE SCHEMA {schema}")
+    try:
+        url = f"postgresql://postgres@127.0.0.1:5432/test?options=-csearch_path%3D{schema}"
+        spec = write_spec(
+            tmp_path / "ci.yaml", storage=url, checkpoints=str(tmp_path / "checkpoints")
+        )
+        assert cli.main(["launch", str(spec), "--max-concurrent", "1"]) == 0
+        check_ci_study(load(url))
+        assert load(url).user_attrs["spec"]["execution"]["max_concurrent"] == 1
+    finally:
+        with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
+            connection.execute(f"DROP SCHEMA {schema} CASCADE")
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"trials_per_method": 0}, "trials_per_method"),
+        ({"env": {"name": "point_reach", "options": {"nosuch": 1}}}, "env.options.nosuch"),
+        ({"methods": {"pixel": {}, "linear": {"latent_dims": 8}}}, "methods.linear.latent_dims"),
+        ({"storage": "postgresql://postgres@127.0.0.1:1/test"}, "storage"),
+        ({"storage": "sqlite:///:memory:"}, "storage"),
+    ],
+)
+def test_bad_input_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys, change, field):
+    monkeypatch.chdir(tmp_path)
+    spec = write_spec(tmp_path / "bad.yaml", **change)
+    assert cli.main(["launch", str(spec)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert err.startswith("sweeper launch: ") and field in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.yaml"]
+
+
+def test_launch_refuses_another_plan(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    url = "sqlite:///runs/ci/study.db"
+    StudyStore.open_or_create(open_storage(url), "ci", {"plan_hash": "0" * 64})
+    assert cli.main(["launch", str(CI_SPEC)]) == 2
+    assert "another plan" in capsys.readouterr().err
+    assert load(url).get_trials() == []
+    assert cli.main(["status", str(CI_SPEC)]) == 2
+
+
+def test_help(capsys):
+    for command, flags in [
+        ("launch", ["--storage", "--address", "--max-concurrent"]),
+        ("status", ["--storage"]),
+    ]:
+        with pytest.raises(SystemExit) as info:
+            cli.main([command, "--help"])
+        assert info.value.code == 0
+        out = capsys.readouterr().out
+        assert all(flag in out for flag in flags)
+
+
+def fake_result(config, success: list[float], distance: list[float], **kw) -> TrialResult:
+    steps = list(range(0, config.total_steps + 1, config.eval_every))
+    return TrialResult(
+        steps=tuple(steps),
+        metrics={"success_rate": tuple(success), "final_distance": tuple(distance)},
+        auc=normalized_auc(steps, success),
+        **kw,
+    )
+
+
+def raise_or_diverge(config, report=None):
+    """pixel raises; linear diverges after its second evaluation."""
+    if config.method == "pixel":
+        report(0, {"success_rate": 0.0, "final_distance": 1.0})
+        raise ValueError("exploded on purpose")
+    report(0, {"success_rate": 0.0, "final_distance": 1.0})
+    report(100, {"success_rate": 0.5, "final_distance": 0.5})
+    result = fake_result(
+        config,
+        [0.0, 0.5, 0.0, 0.0],
+        [1.0, 0.5, math.nan, math.nan],
+        outcome="diverged",
+        diverged_step=200,
+        diverged_loss="critic",
+    )
+    for step, value in zip(result.steps[2:], result.metrics["success_rate"][2:], strict=True):
+        report(step, {"success_rate": value, "final_distance": math.nan})
+    return result
+
+
+def always_succeed(config, report=None):
+    report(0, {"success_rate": 0.0, "final_distance": 1.0})
+    return fake_result(config, [0.0, 1.0, 1.0, 1.0], [1.0, 0.0, 0.0, 0.0])
+
+
+def test_exception_and_divergence_are_recorded_then_relaunch_reruns_failed(tmp_path, capsys):
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    spec, plan = prepare(str(write_spec(tmp_path / "ci.yaml", storage=url)))
+    assert launch(spec, plan, train=raise_or_diverge) == 1
+    trials = {t.user_attrs["key"]: t for t in load(url).get_trials()}
+    failed, diverged = trials["pixel/0/0"], trials["linear/0/0"]
+    assert failed.state == TrialState.FAIL
+    assert failed.user_attrs["outcome"] == "failed"
+    assert failed.user_attrs["error"] == "ValueError: exploded on purpose"
+    assert "raise_or_diverge" in failed.user_attrs["traceback"]
+    assert failed.intermediate_values == {0: 0.0}  # what it reported before failing
+    assert diverged.state == TrialState.COMPLETE
+    assert diverged.value == pytest.approx(normalized_auc(GRID, [0.0, 0.5, 0.0, 0.0]))
+    assert diverged.user_attrs["outcome"] == "diverged"
+    assert (diverged.user_attrs["diverged_step"], diverged.user_attrs["diverged_loss"]) == (
+        200,
+        "critic",
+    )
+    assert diverged.user_attrs["curve"]["final_distance"] == [1.0, 0.5, None, None]
+    assert diverged.intermediate_values == {0: 0.0, 100: 0.5, 200: 0.0, 300: 0.0}
+
+    capsys.readouterr()
+    spec_path = str(tmp_path / "ci.yaml")
+    assert cli.main(["status", spec_path]) == 0
+    out = capsys.readouterr().out
+    assert "failed: pixel/0/0 (trial" in out and "ValueError: exploded on purpose" in out
+    rows = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line}
+    assert rows["linear"] == ["1", "1", "1", "0", "0", "0"]
+    assert rows["pixel"] == ["1", "0", "0", "0", "1", "0"]
+
+    assert launch(spec, plan, train=always_succeed) == 0  # re-runs the failed key only
+    trials = load(url).get_trials()
+    assert len(trials) == 3
+    rerun = trials[-1]
+    assert rerun.user_attrs["key"] == "pixel/0/0"
+    assert rerun.user_attrs["supersedes"] == [failed.number]
+    assert rerun.state == TrialState.COMPLETE
+    assert trials[diverged.number].datetime_complete == diverged.datetime_complete

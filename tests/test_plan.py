@@ -1,0 +1,155 @@
+"""The equal-budget plan: paired SAC configs, exact counts, reproducible, hashed."""
+
+from __future__ import annotations
+
+import copy
+from collections import Counter
+
+import numpy as np
+
+from agent.config import SACConfig, TrialConfig
+from sweeper.plan import build_plan
+from sweeper.space import SAC_DEFAULTS, derive_rng, param_value, sample_configs, space_size
+from sweeper.spec import parse_spec
+
+BASE = {
+    "study": "p",
+    "seed": 0,
+    "env": {"name": "point_reach", "image_size": 32},
+    "methods": {"pixel": {}, "state": {}, "linear": {"latent_dim": [16, 32, 64]}},
+    "trials_per_method": 5,
+    "seeds": [3, 1],
+    "budget": {"env_steps": 1000, "seed_steps": 100, "eval_every": 500},
+}
+SAC_NAMES = list(SAC_DEFAULTS)
+
+
+def plan_of(**changes):
+    data = copy.deepcopy(BASE)
+    data.update(changes)
+    return build_plan(parse_spec(data))
+
+
+def sac_part(entry):
+    return {k: v for k, v in entry.params.items() if k in SAC_NAMES}
+
+
+def test_exact_counts_keys_and_order():
+    plan = plan_of()
+    counts = Counter(e.method for e in plan.entries)
+    assert counts == {"linear": 10, "pixel": 10, "state": 10}  # K x len(seeds) each
+    order = [(e.method, e.config_id, e.seed) for e in plan.entries]
+    assert order == sorted(order)
+    assert len(set(plan.keys())) == 30
+    assert plan.keys()[0] == "linear/0/1"
+    for e in plan.entries:
+        assert e.key == f"{e.method}/{e.config_id}/{e.seed}"
+        assert e.config_id in range(5) and e.seed in (1, 3)
+
+
+def test_sac_configs_are_shared_by_all_methods_and_seeds():
+    plan = plan_of()
+    by_config = {}
+    for e in plan.entries:
+        by_config.setdefault(e.config_id, []).append(sac_part(e))
+    for config_id, sacs in by_config.items():
+        assert all(s == sacs[0] for s in sacs), config_id
+    # method params: one value per (method, config), the same for every seed
+    linear = {(e.config_id, e.seed): e.params["linear.latent_dim"] for e in plan.entries
+              if e.method == "linear"}  # fmt: skip
+    assert all(linear[c, 1] == linear[c, 3] for c in range(5))
+    # distinct SAC configs while the A.1 space (72 configs) has room
+    assert len({tuple(sorted(s[0].items())) for s in by_config.values()}) == 5
+
+
+def test_same_seed_same_plan_other_seed_other_plan():
+    a, b = plan_of(), plan_of()
+    assert a == b and a.hash == b.hash
+    c = plan_of(seed=1)
+    assert c.hash != a.hash
+    assert [sac_part(e) for e in c.entries] != [sac_part(e) for e in a.entries]
+
+
+def test_pinned_sample():
+    """The sampling stream is part of the plan: changing it silently breaks resumes."""
+    plan = plan_of(trials_per_method=3, methods={"pixel": {}}, seeds=[0])
+    got = [
+        (e.params["hidden_sizes"], e.params["lr"], e.params["init_temperature"])
+        for e in plan.entries
+    ]
+    assert got == PINNED
+
+
+PINNED = [("256x256", 0.001, 1.0), ("512x512", 0.0005, 1.0), ("256x256", 0.0001, 0.1)]
+
+
+def test_adding_a_method_keeps_the_others_params():
+    a = plan_of()
+    b = plan_of(methods={**BASE["methods"], "conv": {"latent_dim": [8, 16]}})
+    for e in a.entries:
+        assert b.entries[b.keys().index(e.key)].params == e.params
+    assert a.hash != b.hash
+
+
+def test_hash_ignores_where_trials_run_but_not_what_they_compute():
+    spec = parse_spec(copy.deepcopy(BASE))
+    base = build_plan(spec).hash
+    moved = spec.with_overrides(storage="sqlite:////tmp/o.db", address="auto", max_concurrent=7)
+    assert build_plan(moved).hash == base
+    runtime = copy.deepcopy(BASE) | {"execution": {"threads_per_trial": 2, "checkpoint_every": 9}}
+    assert build_plan(parse_spec(runtime)).hash == base
+    for change in (
+        {"budget": {**BASE["budget"], "env_steps": 2000}},
+        {"budget": {**BASE["budget"], "eval_episodes": 3}},
+        {"env": {"name": "point_reach", "image_size": 48}},
+        {"env": {**BASE["env"], "options": {"success_threshold": 0.1}}},
+        {"seeds": [3]},
+        {"sac": {"discount": 0.99}},
+    ):
+        assert plan_of(**change).hash != base, change
+
+
+def test_params_choices_and_trial_config():
+    spec = parse_spec(copy.deepcopy(BASE) | {"execution": {"threads_per_trial": 2}})
+    plan = build_plan(spec)
+    for e in plan.entries:
+        assert set(e.params) == set(e.choices)
+        for name, value in e.params.items():
+            assert value in e.choices[name], name
+            assert isinstance(value, bool | int | float | str)
+        assert e.choices["hidden_sizes"] == ("256x256", "512x512", "1024x1024")
+        assert e.choices["discount"] == (0.95,)  # fixed params are still params
+        method_params = {k for k in e.params if "." in k}
+        assert method_params == ({"linear.latent_dim"} if e.method == "linear" else set())
+        tc = e.trial_config
+        assert isinstance(tc, TrialConfig) and isinstance(tc.sac, SACConfig)
+        assert (tc.method, tc.seed, tc.env, tc.image_size) == (e.method, e.seed, "point_reach", 32)
+        assert param_value(tc.sac.hidden_sizes) == e.params["hidden_sizes"]
+        assert tc.sac.lr == e.params["lr"]
+        assert (tc.total_steps, tc.seed_steps, tc.eval_every) == (1000, 100, 500)
+        assert tc.threads == 2
+        assert tc.encoder_params == {k.split(".", 1)[1]: v for k, v in e.params.items()
+                                     if "." in k}  # fmt: skip
+        assert tc.checkpoint_dir == (
+            f"runs/p/checkpoints/{plan.hash[:12]}/{e.method}/{e.config_id}/{e.seed}"
+        )
+
+
+def test_sample_configs_distinct_then_repeats():
+    space = {"a": (1, 2, 3), "b": ("x",), "c": (True, False)}
+    assert space_size(space) == 6
+    configs = sample_configs(space, 6, np.random.default_rng(0))
+    assert len({tuple(c.values()) for c in configs}) == 6  # the whole space, no repeat
+    more = sample_configs(space, 13, np.random.default_rng(0))
+    assert more[:6] == configs
+    assert Counter(tuple(c.values()) for c in more).most_common(1)[0][1] == 3
+    assert all(c["b"] == "x" for c in more)
+
+
+def test_fixed_params_draw_nothing_and_streams_are_independent():
+    a = sample_configs({"a": (1, 2, 3, 4)}, 3, np.random.default_rng(5))
+    b = sample_configs({"a": (1, 2, 3, 4), "f": (9,)}, 3, np.random.default_rng(5))
+    assert [c["a"] for c in a] == [c["a"] for c in b]
+    draws = [derive_rng(0, s).integers(1 << 30) for s in ("sac", "method:vae", "method:cvae")]
+    assert len(set(draws)) == 3
+    assert derive_rng(0, "sac").integers(1 << 30) == draws[0]

@@ -1,0 +1,388 @@
+"""Study specs: the shipped studies load, bad specs fail naming the field, YAML traps."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from agent.config import SACConfig
+from sweeper import cli
+from sweeper.space import METHOD_DEFAULTS, OPTION_ENV_VARS, SAC_DEFAULTS
+from sweeper.spec import SpecError, load_spec, load_yaml, parse_spec
+
+ROOT = Path(__file__).resolve().parents[1]
+VGG_ENV = OPTION_ENV_VARS["vgg", "weights_path"]
+
+BASE = {
+    "study": "t",
+    "env": {"name": "point_reach", "image_size": 32},
+    "methods": {"pixel": {}, "state": {}},
+    "trials_per_method": 2,
+    "seeds": [0, 1],
+    "budget": {"env_steps": 1000, "seed_steps": 100, "eval_every": 500},
+}
+
+
+def spec_text(change=None) -> str:
+    data = copy.deepcopy(BASE)
+    if change:
+        change(data)
+    return yaml.safe_dump(data, sort_keys=False)
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "spec.yaml"
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture
+def vgg_weights(tmp_path, monkeypatch) -> Path:
+    """A stand-in weights file: the spec only checks that it exists."""
+    path = tmp_path / "vgg16.pth"
+    path.write_bytes(b"not read by the spec")
+    monkeypatch.setenv(VGG_ENV, str(path))
+    return path
+
+
+# ---- shipped studies ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["fetch_reach", "sawyer_door", "fetch_push", "quickstart", "ci"])
+def test_shipped_studies_load(name, vgg_weights):
+    if name == "sawyer_door":
+        pytest.importorskip("agent.envs.sawyer_door")
+    spec = load_spec(ROOT / "studies" / f"{name}.yaml")
+    assert spec.study == name
+    assert spec.env.name in ("point_reach", name)
+    if name in ("fetch_reach", "sawyer_door", "fetch_push"):
+        assert set(spec.methods) == {"pixel", "linear", "conv", "vae", "cvae", "vgg"}
+        assert spec.sac.space() == SAC_DEFAULTS  # thesis appendix A.1
+        assert spec.methods["vgg"]["weights_path"] == (str(vgg_weights),)
+    if name == "ci":
+        assert len(spec.methods) * spec.trials_per_method_total == 2
+    scale = {"fetch_reach": (20_000, 20), "sawyer_door": (1_000_000, 8)}
+    if name in scale:
+        assert (spec.budget.env_steps, spec.trials_per_method) == scale[name]
+
+
+def test_defaults_and_properties():
+    spec = parse_spec(copy.deepcopy(BASE))
+    assert spec.storage_url == "sqlite:///runs/t/study.db"
+    assert spec.run_dir == Path("runs/t")
+    assert spec.checkpoint_dir == "runs/t/checkpoints"
+    assert spec.trials_per_method_total == 4
+    assert spec.execution.address is None and spec.execution.max_concurrent == 2
+    assert spec.sac.space() == SAC_DEFAULTS
+    with pytest.raises(Exception, match="frozen"):
+        spec.study = "other"
+
+
+def test_sac_space_covers_sac_config():
+    fields = [f.name for f in dataclasses.fields(SACConfig)]
+    assert list(SAC_DEFAULTS) == fields
+    assert SAC_DEFAULTS["lr"] == (1e-3, 5e-4, 1e-4)
+    assert SAC_DEFAULTS["hidden_sizes"] == ((256, 256), (512, 512), (1024, 1024))
+    for name in fields:  # the fixed defaults agree with SACConfig's own
+        if len(SAC_DEFAULTS[name]) == 1:
+            assert SAC_DEFAULTS[name][0] == getattr(SACConfig(), name), name
+
+
+def test_round_trip_through_json_dump(vgg_weights):
+    spec = load_spec(ROOT / "studies" / "fetch_reach.yaml")
+    assert parse_spec(spec.model_dump(mode="json")) == spec
+
+
+def test_overrides_are_validated():
+    spec = parse_spec(copy.deepcopy(BASE))
+    other = spec.with_overrides(storage="sqlite:////tmp/x.db", address="auto", max_concurrent=4)
+    assert other.storage_url == "sqlite:////tmp/x.db"
+    assert (other.execution.address, other.execution.max_concurrent) == ("auto", 4)
+    assert spec.with_overrides() == spec
+    with pytest.raises(SpecError, match=r"execution\.max_concurrent"):
+        spec.with_overrides(max_concurrent=0)
+    with pytest.raises(SpecError, match="storage"):
+        spec.with_overrides(storage="not a url")
+
+
+def test_method_spaces_merge_defaults_and_encoder_options():
+    from encoders import encoder_names, encoder_options
+
+    for name in encoder_names():  # every default option is one the encoder accepts
+        assert set(METHOD_DEFAULTS.get(name, {})) <= set(encoder_options(name)), name
+    data = copy.deepcopy(BASE)
+    data["methods"] = {"vae": {"beta": [2, 4.5], "num_images": 300}, "linear": {}}
+    spec = parse_spec(data)
+    vae = spec.methods["vae"]
+    assert vae["beta"] == (2.0, 4.5) and all(isinstance(b, float) for b in vae["beta"])
+    assert vae["num_images"] == (300,)
+    assert vae["latent_dim"] == (8, 16)  # sweeper.space default, thesis A.1
+    assert spec.methods["linear"] == {"latent_dim": (128, 256)}
+
+
+def test_vgg_weights_from_env_var_or_spec(tmp_path, monkeypatch, vgg_weights):
+    data = copy.deepcopy(BASE)
+    data["methods"] = {"vgg": {}}
+    assert parse_spec(data).methods["vgg"]["weights_path"] == (str(vgg_weights),)
+    monkeypatch.delenv(VGG_ENV)
+    with pytest.raises(SpecError, match=rf"methods\.vgg\.weights_path: required.*{VGG_ENV}"):
+        parse_spec(data)
+    data["methods"] = {"vgg": {"weights_path": str(tmp_path / "missing.pth")}}
+    with pytest.raises(SpecError, match=r"methods\.vgg\.weights_path: file not found"):
+        parse_spec(data)
+    data["execution"] = {"address": "auto"}  # a cluster: the file lives on the workers
+    assert parse_spec(data).methods["vgg"]["weights_path"] == (str(tmp_path / "missing.pth"),)
+
+
+def test_yaml_follows_the_1_2_core_schema():
+    data = load_yaml(
+        "a: 1e-4\nb: 010\nc: no\nd: 1_000_000\ne: 0x10\nf: 2024-01-01\ng: 1:30\nh: ~\ni: True\n"
+    )
+    assert data == {
+        "a": 1e-4,
+        "b": 10,
+        "c": "no",
+        "d": 1_000_000,
+        "e": 16,
+        "f": "2024-01-01",
+        "g": "1:30",
+        "h": None,
+        "i": True,
+    }
+    assert isinstance(data["a"], float) and isinstance(data["b"], int)
+    # merge keys are not duplicates: an explicit key overrides the merged one
+    assert load_yaml("x: &a {k: 1}\ny:\n  <<: *a\n  k: 2\n")["y"] == {"k": 2}
+
+
+def test_light_imports():
+    code = (
+        "import sys, sweeper.spec, sweeper.plan, sweeper.space, agent.envs; "
+        "print([m for m in ('torch', 'mujoco', 'ray', 'optuna') if m in sys.modules])"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.stdout.strip() == "[]", out.stderr
+
+
+# ---- malformed specs ---------------------------------------------------------------------------
+
+
+def _set(path: str, value):
+    """A change that sets the dotted ``path`` of the spec dict to ``value``."""
+
+    def change(data):
+        *parents, last = path.split(".")
+        for p in parents:
+            data = data.setdefault(p, {})
+        data[last] = value
+
+    return change
+
+
+def _drop(path: str):
+    def change(data):
+        *parents, last = path.split(".")
+        for p in parents:
+            data = data[p]
+        del data[last]
+
+    return change
+
+
+# (id, YAML text, the dotted path the message must name, words of what is allowed)
+BAD_SPECS = [
+    ("missing study", spec_text(_drop("study")), "study", "required"),
+    ("missing env name", spec_text(_drop("env.name")), "env.name", "ENV_NAMES"),
+    ("missing budget", spec_text(_drop("budget")), "budget", "env_steps"),
+    ("missing K", spec_text(_drop("trials_per_method")), "trials_per_method", ">= 1"),
+    (
+        "unknown top key",
+        spec_text(_set("trails_per_method", 3)),
+        "trails_per_method",
+        "did you mean 'trials_per_method'",
+    ),
+    ("unknown sac key", spec_text(_set("sac.lrr", 0.1)), "sac.lrr", "did you mean 'lr'"),
+    (
+        "unknown env",
+        spec_text(_set("env.name", "fetch_reech")),
+        "env.name",
+        "did you mean 'fetch_reach'",
+    ),
+    (
+        "unknown method",
+        spec_text(_set("methods", {"pixle": {}})),
+        "methods.pixle",
+        "did you mean 'pixel'",
+    ),
+    ("no methods", spec_text(_set("methods", {})), "methods", "allowed: pixel"),
+    ("methods as list", spec_text(_set("methods", ["pixel"])), "methods", "dictionary"),
+    (
+        "unknown method option",
+        spec_text(_set("methods", {"conv": {"latent_dims": 8}})),
+        "methods.conv.latent_dims",
+        "did you mean 'latent_dim'",
+    ),
+    (
+        "method option type",
+        spec_text(_set("methods", {"vae": {"latent_dim": [8, "big"]}})),
+        "methods.vae.latent_dim[1]",
+        "an integer",
+    ),
+    (
+        "method option range",
+        spec_text(_set("methods", {"vae": {"beta": -1}})),
+        "methods.vae.beta",
+        ">= 0",
+    ),
+    (
+        "empty method space",
+        spec_text(_set("methods", {"linear": {"latent_dim": []}})),
+        "methods.linear.latent_dim",
+        "empty search space",
+    ),
+    ("empty sac space", spec_text(_set("sac.lr", [])), "sac.lr", "empty search space"),
+    ("negative lr choice", spec_text(_set("sac.lr", [1e-3, -1e-3])), "sac.lr[1]", "greater than 0"),
+    ("lr as text", spec_text(_set("sac.lr", "fast")), "sac.lr[0]", "valid number"),
+    (
+        "repeated choices",
+        spec_text(_set("sac.critic_tau", [0.1, 0.1])),
+        "sac.critic_tau",
+        "distinct",
+    ),
+    (
+        "zero layer",
+        spec_text(_set("sac.hidden_sizes", [[64, 0]])),
+        "sac.hidden_sizes[0][1]",
+        "greater than or equal to 1",
+    ),
+    (
+        "batch over buffer",
+        spec_text(_set("sac.buffer_capacity", 10)),
+        "sac.batch_size",
+        "buffer_capacity",
+    ),
+    (
+        "negative budget",
+        spec_text(_set("budget.env_steps", -5)),
+        "budget.env_steps",
+        "greater than or equal to 1",
+    ),
+    (
+        "float steps",
+        spec_text(_set("budget.env_steps", 1000.0)),
+        "budget.env_steps",
+        "valid integer",
+    ),
+    ("ragged grid", spec_text(_set("budget.eval_every", 300)), "budget.eval_every", "divide"),
+    (
+        "seed steps too many",
+        spec_text(_set("budget.seed_steps", 1000)),
+        "budget.seed_steps",
+        "< env_steps",
+    ),
+    (
+        "K zero",
+        spec_text(_set("trials_per_method", 0)),
+        "trials_per_method",
+        "greater than or equal to 1",
+    ),
+    ("K as bool", spec_text(_set("trials_per_method", True)), "trials_per_method", "valid integer"),
+    ("no seeds", spec_text(_set("seeds", [])), "seeds", "empty"),
+    ("negative seed", spec_text(_set("seeds", [0, -1])), "seeds[1]", "greater than or equal"),
+    ("image too small", spec_text(_set("env.image_size", 8)), "env.image_size", "[32, 256]"),
+    (
+        "unknown env option",
+        spec_text(_set("env.options", {"sucess_threshold": 0.1})),
+        "env.options.sucess_threshold",
+        "did you mean 'success_threshold'",
+    ),
+    (
+        "env option type",
+        spec_text(_set("env.options", {"blob_sigma": "wide"})),
+        "env.options.blob_sigma",
+        "a finite number",
+    ),
+    (
+        "reserved env option",
+        spec_text(_set("env.options", {"obs_mode": "state"})),
+        "env.options.obs_mode",
+        "set by the sweeper",
+    ),
+    ("storage not a url", spec_text(_set("storage", "runs/x.db")), "storage", "SQLAlchemy URL"),
+    (
+        "negative gpus",
+        spec_text(_set("execution.gpus_per_trial", -0.5)),
+        "execution.gpus_per_trial",
+        "greater than or equal to 0",
+    ),
+    ("bad study name", spec_text(_set("study", "../escape")), "study", "letters, digits"),
+    (
+        "state has no options",
+        spec_text(_set("methods", {"state": {"latent_dim": 4}})),
+        "methods.state.latent_dim",
+        "allowed: none",
+    ),
+    # YAML 1.1 traps and broken files
+    (
+        "yes is not a bool",
+        spec_text().replace("seeds:", "seed: no\nseeds:"),
+        "seed",
+        "valid integer",
+    ),
+    ("duplicate key", spec_text() + "study: again\n", "line", "duplicate key 'study'"),
+    ("invalid yaml", "study: [t\n", "line 2", "invalid YAML"),
+    ("not a mapping", "- study\n- t\n", "spec.yaml", "must be a mapping"),
+    ("empty file", "", "spec.yaml", "must be a mapping"),
+    ("binary file", None, "spec.yaml", "cannot read"),
+]
+
+
+@pytest.mark.parametrize(("text", "path", "allowed"), [c[1:] for c in BAD_SPECS],
+                         ids=[c[0] for c in BAD_SPECS])  # fmt: skip
+def test_bad_spec_raises_spec_error_naming_the_field(tmp_path, text, path, allowed):
+    spec_file = tmp_path / "spec.yaml"
+    if text is None:
+        spec_file.write_bytes(b"study: \xff\xfe\n")
+    else:
+        spec_file.write_text(text)
+    with pytest.raises(SpecError) as info:
+        load_spec(spec_file)
+    message = str(info.value)
+    assert "\n" not in message
+    assert path in message and allowed in message, message
+    field_path = next((p for p, _ in info.value.errors if p == path), None)
+    assert field_path is not None or not info.value.errors, info.value.errors
+
+
+def test_unreadable_files(tmp_path):
+    with pytest.raises(SpecError, match="cannot read the spec file"):
+        load_spec(tmp_path / "missing.yaml")
+    with pytest.raises(SpecError, match="cannot read the spec file"):
+        load_spec(tmp_path)  # a directory
+
+
+def test_bad_spec_count():
+    assert len(BAD_SPECS) >= 20
+
+
+@pytest.mark.parametrize(
+    "case",
+    [c for c in BAD_SPECS if c[0] in ("unknown sac key", "negative budget", "duplicate key")],
+    ids=lambda c: c[0],
+)
+def test_launch_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys, case):
+    _, text, path, allowed = case
+    monkeypatch.chdir(tmp_path)
+    spec_file = write(tmp_path, text)
+    db = tmp_path / "db" / "study.db"
+    code = cli.main(["launch", str(spec_file), "--storage", f"sqlite:///{db}"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert path in err and allowed in err and len(err.strip().splitlines()) == 1, err
+    assert not db.exists() and not db.parent.exists()
+    assert not (tmp_path / "runs").exists()

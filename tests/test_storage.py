@@ -1,0 +1,231 @@
+"""sweeper.storage: URLs, SQLite under a concurrent reader, PostgreSQL, the keyed ledger."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import sqlite3
+import subprocess
+import sys
+import uuid
+from dataclasses import dataclass, field
+
+import optuna
+import psycopg
+import pytest
+from optuna.trial import TrialState
+
+from sweeper.storage import (
+    Counts,
+    StorageError,
+    StudyBusy,
+    StudyStore,
+    check_storage,
+    current_trials,
+    ledger,
+    open_storage,
+    resolve_url,
+)
+
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+PG_ADMIN = "host=127.0.0.1 port=5432 dbname=test user=postgres"
+
+
+@dataclass(frozen=True)
+class Entry:
+    """The part of sweeper.plan.PlanEntry the store reads."""
+
+    method: str
+    config_id: int
+    seed: int
+    params: dict = field(default_factory=lambda: {"lr": 1e-3})
+    choices: dict = field(default_factory=lambda: {"lr": (1e-3, 1e-4)})
+
+    @property
+    def key(self) -> str:
+        return f"{self.method}/{self.config_id}/{self.seed}"
+
+
+ENTRIES = [Entry(m, c, 0) for m in ("pixel", "vae") for c in range(2)]
+
+
+@pytest.fixture
+def sqlite_url(tmp_path):
+    return f"sqlite:///{tmp_path / 'sub' / 'study.db'}"
+
+
+@pytest.fixture
+def pg_url():
+    """A fresh PostgreSQL schema on the local server, dropped afterwards."""
+    schema = f"sweeper_test_{uuid.uuid4().hex[:10]}"
+    with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
+        connection.execute(f"CREATE SCHEMA {schema}")
+    yield f"postgresql://postgres@127.0.0.1:5432/test?options=-csearch_path%3D{schema}"
+    with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
+        connection.execute(f"DROP SCHEMA {schema} CASCADE")
+
+
+def test_resolve_url_uses_psycopg3_for_postgresql():
+    assert resolve_url("postgresql://u@h/db") == "postgresql+psycopg://u@h/db"
+    assert resolve_url("postgresql+psycopg://u@h/db") == "postgresql+psycopg://u@h/db"
+    assert resolve_url("sqlite:///a.db") == "sqlite:///a.db"
+
+
+@pytest.mark.parametrize(
+    ("url", "message"),
+    [
+        ("sqlite:///:memory:", "in-memory"),
+        ("postgresql://postgres@127.0.0.1:1/test", "cannot connect"),
+        ("postgresql://postgres@127.0.0.1:5432/no_such_db_xyz", 'database "no_such_db_xyz"'),
+        ("nosuchdialect://x/y", "cannot use"),
+    ],
+)
+def test_check_storage_names_the_field(url, message):
+    with pytest.raises(StorageError, match="storage") as info:
+        check_storage(url)
+    assert message in str(info.value)
+
+
+def test_check_storage_writes_nothing(tmp_path):
+    check_storage(f"sqlite:///{tmp_path / 'a' / 'b' / 'study.db'}")
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "dir.db").mkdir()
+    with pytest.raises(StorageError, match="not a file"):
+        check_storage(f"sqlite:///{tmp_path / 'dir.db'}")
+
+
+READER = """
+import json, os, sys, time
+import optuna
+storage = optuna.storages.RDBStorage(sys.argv[1], skip_compatibility_check=True,
+                                     skip_table_creation=True)  # as optuna-dashboard opens it
+reads, errors = 0, []
+while not os.path.exists(sys.argv[2]):
+    try:
+        for study in storage.get_all_studies():
+            storage.get_all_trials(study._study_id)
+            storage.get_study_user_attrs(study._study_id)
+        reads += 1
+    except Exception as e:
+        errors.append(repr(e))
+print(json.dumps({"reads": reads, "errors": errors[:3], "n_errors": len(errors)}))
+"""
+
+
+def test_sqlite_no_lost_write_with_a_dashboard_reading(sqlite_url, tmp_path):
+    """The driver's writes all land while another process reads the file in a loop."""
+    storage = open_storage(sqlite_url)
+    path = tmp_path / "sub" / "study.db"
+    assert sqlite3.connect(path).execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    store = StudyStore.open_or_create(storage, "hammer", {"plan_hash": "h"})
+    stop = tmp_path / "stop"
+    reader = subprocess.Popen(
+        [sys.executable, "-c", READER, sqlite_url, str(stop)],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        numbers = []
+        for trial_number in range(4):
+            trial = store.add_waiting({"lr": 1e-3}, {"lr": (1e-3,)}, {"key": f"m/{trial_number}/0"})
+            store.start(trial._trial_id)
+            curve = {"step": [], "success_rate": []}
+            for step in range(60):  # one write pair per report, as the driver does
+                store.report(trial._trial_id, {step * 10: step / 100})
+                curve["step"].append(step * 10)
+                curve["success_rate"].append(step / 100)
+                store.set_attrs(trial._trial_id, {"curve": curve})
+            store.complete(trial._trial_id, 0.5 + trial_number, {"outcome": "completed"})
+            numbers.append(trial.number)
+    finally:
+        stop.touch()
+        out, _ = reader.communicate(timeout=60)
+    result = json.loads(out)
+    assert result["n_errors"] == 0, result["errors"]
+    assert result["reads"] > 10
+    trials = StudyStore.find(open_storage(sqlite_url), "hammer").trials()
+    assert [t.state for t in trials] == [TrialState.COMPLETE] * 4
+    assert [t.value for t in trials] == [0.5, 1.5, 2.5, 3.5]
+    for trial in trials:
+        assert trial.intermediate_values == {s * 10: s / 100 for s in range(60)}
+        assert trial.user_attrs["curve"]["step"] == [s * 10 for s in range(60)]
+
+
+def _lifecycle(url: str) -> None:
+    """Create, run, reap, resume: what a driver and a relaunch do, against ``url``."""
+    storage = open_storage(url)
+    store = StudyStore.open_or_create(storage, "life", {"plan_hash": "h1", "plan": ["..."]})
+    todo = store.sync(ENTRIES, "h1")
+    assert [entry.key for entry, _ in todo] == [e.key for e in ENTRIES]
+    assert all(trial.state == TrialState.WAITING for _, trial in todo)
+    assert store.sync(ENTRIES, "h1") == [(e, t) for e, t in todo]  # idempotent
+    ids = {entry.key: trial._trial_id for entry, trial in todo}
+    for key in ("pixel/0/0", "pixel/1/0", "vae/0/0"):
+        store.start(ids[key])
+    store.report(ids["pixel/0/0"], {0: 0.0, 100: 1.0})
+    store.complete(ids["pixel/0/0"], 0.5, {"outcome": "completed"})
+    store.fail(ids["pixel/1/0"], {"outcome": "failed", "error": "ValueError: boom"})
+    # vae/0/0 stays RUNNING: its driver "dies" here.
+    assert ledger([e.key for e in ENTRIES], store.trials(), driver_alive=True) == {
+        "pixel": Counts(planned=2, done=1, failed=1),
+        "vae": Counts(planned=2, running=1, left=1),
+    }
+    assert ledger([e.key for e in ENTRIES], store.trials(), driver_alive=False)["vae"] == Counts(
+        planned=2, left=2
+    )
+
+    relaunch = StudyStore.open_or_create(open_storage(url), "life", {"plan_hash": "h1"})
+    todo = relaunch.sync(ENTRIES, "h1")
+    assert [entry.key for entry, _ in todo] == ["pixel/1/0", "vae/0/0", "vae/1/0"]
+    trials = relaunch.trials()
+    by_number = {t.number: t for t in trials}
+    reaped = next(t for t in trials if t._trial_id == ids["vae/0/0"])
+    assert reaped.state == TrialState.FAIL
+    assert reaped.user_attrs["outcome"] == "interrupted"
+    successor = by_number[reaped.user_attrs["superseded_by"]]
+    assert successor.user_attrs["key"] == "vae/0/0"
+    assert successor.user_attrs["supersedes"] == [reaped.number]
+    assert successor.state == TrialState.WAITING
+    assert successor.params == {"lr": 1e-3}
+    failed_successor = current_trials(trials)["pixel/1/0"]
+    assert failed_successor.state == TrialState.WAITING
+    assert failed_successor.user_attrs["attempts"] == 0
+    # counted once per key whatever the history
+    assert ledger([e.key for e in ENTRIES], trials, driver_alive=False) == {
+        "pixel": Counts(planned=2, done=1, left=1),
+        "vae": Counts(planned=2, left=2),
+    }
+    with pytest.raises(StorageError, match="another plan"):
+        StudyStore.open_or_create(open_storage(url), "life", {"plan_hash": "h2"})
+
+
+def test_lifecycle_sqlite(sqlite_url):
+    _lifecycle(sqlite_url)
+
+
+def test_lifecycle_postgresql(pg_url):
+    _lifecycle(pg_url)
+    assert "postgresql+psycopg" in str(open_storage(pg_url).engine.url)
+
+
+def test_driver_lock(sqlite_url):
+    store = StudyStore.open_or_create(open_storage(sqlite_url), "lock", {"plan_hash": "h"})
+    assert not store.driver_alive()
+    store.claim_driver()
+    assert store.driver_alive()
+    store.claim_driver()  # the same process may claim again
+    live_other = {"host": socket.gethostname(), "pid": os.getppid(), "heartbeat": 1e12}
+    store.storage.set_study_user_attr(store.study_id, "driver", live_other)
+    with pytest.raises(StudyBusy, match=f"pid {os.getppid()}"):
+        store.claim_driver()
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    store.storage.set_study_user_attr(
+        store.study_id, "driver", {**live_other, "pid": int(dead.stdout)}
+    )
+    store.claim_driver()  # its pid is gone
+    store.storage.set_study_user_attr(store.study_id, "driver", {**live_other, "heartbeat": 0})
+    store.claim_driver()  # its heartbeat is stale
+    store.release_driver()
+    assert store.attrs["driver"] is None
