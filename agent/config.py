@@ -115,6 +115,10 @@ class TrialConfig:
         )
 
 
+#: TrialConfig fields that change how a trial runs but not its curve (a checkpoint written
+#: under one value resumes under another)
+RUNTIME_FIELDS = ("device", "threads", "checkpoint_dir", "checkpoint_every")
+
 Outcome = Literal["completed", "diverged"]
 
 

@@ -15,6 +15,7 @@ buffer does not care. Memory is ``(T + 2) / T`` observations per transition (52/
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -115,14 +116,18 @@ class ReplayBuffer:
             "episodes": self.episodes,
         }
 
-    def load_state_dict(self, state: dict[str, np.ndarray | int]) -> None:
-        n = len(state["lengths"])
-        if n > self.num_slots or state["obs"].shape[1:] != self.obs.shape[1:]:
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a ``state_dict()``; arrays may come back as CPU tensors."""
+        arrays = {
+            k: np.asarray(state[k]) for k in ("obs", "goals", "actions", "rewards", "lengths")
+        }
+        n = len(arrays["lengths"])
+        if n > self.num_slots or arrays["obs"].shape[1:] != self.obs.shape[1:]:
             raise ValueError(
-                f"replay state of {n} slots x {state['obs'].shape[1:]} does not fit a buffer of "
-                f"{self.num_slots} slots x {self.obs.shape[1:]}"
+                f"replay state of {n} slots x {arrays['obs'].shape[1:]} does not fit a buffer "
+                f"of {self.num_slots} slots x {self.obs.shape[1:]}"
             )
-        for name in ("obs", "goals", "actions", "rewards", "lengths"):
-            getattr(self, name)[:n] = state[name]
+        for name, array in arrays.items():
+            getattr(self, name)[:n] = array
         self.lengths[n:] = 0
         self.episodes = int(state["episodes"])

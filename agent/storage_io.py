@@ -12,11 +12,13 @@ store commits an object only when its upload completes.
 
 from __future__ import annotations
 
+import io
 import os
 import re
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 _URI_RE = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 
@@ -62,16 +64,27 @@ def read_bytes(location: str) -> bytes | None:
 
 def write_bytes_atomic(location: str, data: bytes) -> None:
     """Write ``data`` at ``location`` atomically, creating parent directories."""
+    write_atomic(location, lambda f: f.write(data))
+
+
+def write_atomic(location: str, write: Callable[[BinaryIO], object]) -> None:
+    """Call ``write(file)`` and commit what it wrote at ``location`` atomically.
+
+    Local files are streamed to disk (no copy in memory, for large checkpoints); a URI's
+    bytes are collected in memory and uploaded in one piece.
+    """
     if is_uri(location):
+        buffer = io.BytesIO()
+        write(buffer)
         fs, path = _filesystem(location)
-        fs.pipe_file(path, data)  # one object upload: visible only once complete
+        fs.pipe_file(path, buffer.getvalue())  # one object upload: visible only once complete
         return
     path = _local(location)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

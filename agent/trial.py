@@ -13,7 +13,8 @@ uses the env's true reward on state observations.
 Checkpoints are written only at episode ends: the next thing the trial does is reset
 the env, so no mid-episode simulator state is needed, only the env's random generator.
 A checkpoint holds the networks, optimisers, replay, counters, the curve so far, and the
-torch and numpy random states; resuming from it gives the same curve on CPU. Each
+torch and numpy random states; resuming from it gives the same curve on CPU.
+``checkpoint_dir`` is a local directory or an object-store URI (``agent.storage_io``). Each
 checkpoint carries a SHA-256 digest of its contents: a truncated or corrupt file is
 ignored with a warning. Learned encoders are fitted again on resume (deterministic given
 the seed) rather than saved, so no encoder needs a serialisation API.
@@ -21,9 +22,10 @@ the seed) rather than saved, so no encoder needs a serialisation API.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
-import os
+import io
 import time
 import warnings
 from collections.abc import Callable
@@ -34,7 +36,8 @@ import numpy as np
 import torch
 
 import encoders
-from agent.config import TrialConfig, TrialResult
+from agent import storage_io
+from agent.config import RUNTIME_FIELDS, TrialConfig, TrialResult
 from agent.envs import make_env
 from agent.envs.base import EPISODE_STEPS
 from agent.metrics import (
@@ -51,8 +54,6 @@ Report = Callable[[int, dict[str, float]], None]
 CHECKPOINT_NAME = "checkpoint.pt"
 CHECKPOINT_FORMAT = 1
 DEFAULT_NUM_IMAGES = 1000
-# config fields that do not change the curve: a checkpoint stays valid across them
-_RUN_ONLY_FIELDS = ("device", "threads", "checkpoint_dir", "checkpoint_every")
 
 
 class Diverged(Exception):
@@ -100,16 +101,16 @@ def build_encoder(config: TrialConfig, image_size: int, device: torch.device) ->
 
 def collect_random_images(config: TrialConfig, num_images: int) -> np.ndarray:
     """``num_images`` frames seen by a uniform random policy in the trial's env."""
-    env = make_env(config.env, image_size=config.image_size, **config.env_kwargs)
     rng = np.random.default_rng(_seed(config.seed, 2))
     frames = []
-    obs, _ = env.reset(seed=_seed(config.seed, 3))
-    while len(frames) < num_images:
-        frames.append(obs["image"])
-        obs, _, terminated, truncated, _ = env.step(_uniform_action(env, rng))
-        if terminated or truncated:
-            obs, _ = env.reset()
-    env.close()
+    make = dict(image_size=config.image_size, **config.env_kwargs)
+    with contextlib.closing(make_env(config.env, **make)) as env:
+        obs, _ = env.reset(seed=_seed(config.seed, 3))
+        while len(frames) < num_images:
+            frames.append(obs["image"])
+            obs, _, terminated, truncated, _ = env.step(_uniform_action(env, rng))
+            if terminated or truncated:
+                obs, _ = env.reset()
     return np.stack(frames)
 
 
@@ -162,50 +163,43 @@ def _to_tensors(obj: Any) -> Any:
     return obj
 
 
-def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """Write ``state`` atomically: temp file, fsync, rename, fsync the directory."""
+def save_checkpoint(location: str, state: dict[str, Any]) -> None:
+    """Write ``state`` atomically (``agent.storage_io.write_atomic``) with its digest."""
     state = _to_tensors(state)
     state["digest"] = _digest(state)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        torch.save(state, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    storage_io.write_atomic(location, lambda f: torch.save(state, f))
 
 
-def load_checkpoint(path: Path, config: TrialConfig) -> dict[str, Any] | None:
-    """The checkpoint at ``path`` if it exists and is intact, else None (with a warning).
-
-    A checkpoint of a different trial config is an error: resuming it would mix two trials.
-    """
-    if not path.exists():
+def load_checkpoint(location: str, config: TrialConfig) -> dict[str, Any] | None:
+    """The checkpoint at ``location`` if there is one and it is intact, else None (with a
+    warning if it is corrupt). A checkpoint of another trial config is an error: resuming
+    it would mix two trials."""
+    if storage_io.is_uri(location):
+        data = storage_io.read_bytes(location)
+        source: Any = None if data is None else io.BytesIO(data)
+    else:
+        source = location if Path(location).exists() else None
+    if source is None:
         return None
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        state = torch.load(source, map_location="cpu", weights_only=True)
         digest = state.pop("digest")
         if state.get("format") != CHECKPOINT_FORMAT or digest != _digest(state):
             raise ValueError("digest or format mismatch")
     except Exception as exc:
-        warnings.warn(f"ignoring corrupt checkpoint {path}: {exc}", stacklevel=3)
+        warnings.warn(f"ignoring corrupt checkpoint {location}: {exc}", stacklevel=3)
         return None
     if state["config"] != _config_key(config):
         raise ValueError(
-            f"checkpoint_dir {str(path.parent)!r} holds a checkpoint of another trial config; "
-            "give each trial its own checkpoint_dir"
+            f"checkpoint_dir {config.checkpoint_dir!r} holds a checkpoint of another trial "
+            "config; give each trial its own checkpoint_dir"
         )
     return state
 
 
 def _config_key(config: TrialConfig) -> str:
     fields = dataclasses.asdict(config)
-    for name in _RUN_ONLY_FIELDS:
+    for name in RUNTIME_FIELDS:
         fields.pop(name)
     return repr(fields)
 
@@ -217,14 +211,27 @@ def train(config: TrialConfig, report: Report | None = None) -> TrialResult:
     start = time.perf_counter()
     torch.set_num_threads(config.threads)
     device = resolve_device(config.device)
+    obs_mode = "state" if config.method == "state" else "image"
+    make = dict(image_size=config.image_size, obs_mode=obs_mode, **config.env_kwargs)
+    with (
+        contextlib.closing(make_env(config.env, **make)) as env,
+        contextlib.closing(make_env(config.env, **make)) as eval_env,
+    ):
+        return _run(config, report, env, eval_env, device, start)
+
+
+def _run(
+    config: TrialConfig,
+    report: Report | None,
+    env: Any,
+    eval_env: Any,
+    device: torch.device,
+    start: float,
+) -> TrialResult:
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(_seed(config.seed, 0))  # random actions, replay sampling
-
     state_mode = config.method == "state"
-    obs_mode = "state" if state_mode else "image"
     keys = ("state", "goal_state") if state_mode else ("image", "goal_image")
-    make = dict(image_size=config.image_size, obs_mode=obs_mode, **config.env_kwargs)
-    env, eval_env = make_env(config.env, **make), make_env(config.env, **make)
     encoder = None if state_mode else build_encoder(config, env.image_size, device)
     env.reset(seed=_seed(config.seed, 1))  # seeds the env's generator; episodes reset() below
     eval_seeds = [_seed(config.seed, 100 + i) for i in range(config.eval_episodes)]
@@ -242,7 +249,6 @@ def train(config: TrialConfig, report: Report | None = None) -> TrialResult:
     )
     grid = evaluation_grid(config.total_steps, config.eval_every)
     grid_set = set(grid)
-    metric_keys = tuple(metric_key(name) for name in env.metric_names)
     curve: dict[str, list[float]] = {"step": []}
 
     def record(step: int, metrics: dict[str, float]) -> None:
@@ -254,15 +260,18 @@ def train(config: TrialConfig, report: Report | None = None) -> TrialResult:
 
     # resume: restore everything, re-report the curve so far
     step, seconds_before, resumed_from = 0, 0.0, None
-    path = Path(config.checkpoint_dir) / CHECKPOINT_NAME if config.checkpoint_dir else None
+    path = (
+        storage_io.join(config.checkpoint_dir, CHECKPOINT_NAME) if config.checkpoint_dir else None
+    )
     saved = load_checkpoint(path, config) if path is not None else None
     if saved is not None:
         step = resumed_from = int(saved["step"])
         seconds_before = float(saved["seconds"])
         agent.load_state_dict(saved["agent"])
-        replay.load_state_dict({k: v.numpy() if isinstance(v, torch.Tensor) else v
-                                for k, v in saved["replay"].items()})  # fmt: skip
+        replay.load_state_dict(saved["replay"])
         torch.set_rng_state(saved["torch_rng"])
+        if device.type == "cuda":
+            torch.cuda.set_rng_state_all(saved["cuda_rng"])
         rng.bit_generator.state = saved["numpy_rng"]
         env.np_random.bit_generator.state = saved["env_rng"]
         for i, s in enumerate(saved["curve"]["step"]):
@@ -279,6 +288,7 @@ def train(config: TrialConfig, report: Report | None = None) -> TrialResult:
             "agent": agent.state_dict(),
             "replay": replay.state_dict(),
             "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else [],
             "numpy_rng": rng.bit_generator.state,
             "env_rng": env.np_random.bit_generator.state,
         })  # fmt: skip
@@ -300,9 +310,8 @@ def train(config: TrialConfig, report: Report | None = None) -> TrialResult:
                 action = agent.act(obs[keys[0]], obs[keys[1]], sample=True)
             obs, reward, terminated, truncated, _ = env.step(action)
             if encoder is not None:
-                reward = float(
-                    encoders.latent_reward(encoder.encode(obs[keys[0]][None]), goal_latent)[0]
-                )
+                latent = encoder.encode(obs[keys[0]][None])
+                reward = float(encoders.latent_reward(latent, goal_latent)[0])
             replay.add(action, reward, obs[keys[0]])
             step += 1
 
@@ -322,12 +331,10 @@ def train(config: TrialConfig, report: Report | None = None) -> TrialResult:
                 last_checkpoint = step
     except Diverged as exc:
         outcome, diverged = "diverged", exc
+        filler = diverged_metrics(tuple(metric_key(name) for name in env.metric_names))
         for s in grid:
             if s > curve["step"][-1]:
-                record(s, diverged_metrics(metric_keys))
-    finally:
-        env.close()
-        eval_env.close()
+                record(s, filler)
 
     metrics = {k: tuple(v) for k, v in curve.items() if k != "step"}
     return TrialResult(

@@ -95,7 +95,7 @@ def scripted_door(episodes: int = 30) -> dict[str, float]:
             state = env.controllable_state()
             if phase == "hook":
                 above = np.linalg.norm(mocap[:2] - hook[:2]) > 0.03
-                target = hook + [0.0, 0.0, 0.12] if above else hook
+                target = hook + np.array([0.0, 0.0, 0.12]) if above else hook
                 phase = "pull" if np.linalg.norm(mocap - hook) < 0.02 else phase
             if phase == "pull":
                 rel = mocap[:2] - hinge

@@ -7,8 +7,9 @@ tidy frame with one row per (trial, evaluation step), then writes under ``--out`
 - ``frame.csv``: the tidy frame; ``curves.csv``: per-method mean/std/n at every step of
   every metric; ``auc_table.csv``: the per-method AUC table; ``improvement.csv``: paired
   probability of improvement between methods;
-- ``curves.png`` (a panel per metric: mean ± std per method), ``trials_<metric>.png`` (one
-  line per trial coloured by its AUC), ``auc.png`` (trial AUCs, IQM and its 95 % CI);
+- ``curves.png`` (a panel per metric: mean ± std per method), ``trials.png`` (a panel per
+  metric and method, a line per trial coloured by its AUC), ``auc.png`` (trial AUCs, IQM
+  and its 95 % CI);
 - ``report.md``, which embeds the figures;
 
 and saves the curves, the AUC figure and the table (a section of the study note) into the
@@ -123,12 +124,14 @@ def load_study_frame(storage_url: str, study_name: str) -> pd.DataFrame:
     (name), ``study_attrs`` (the study user attrs), ``metrics`` (metric columns, in the
     study's ``metric_names`` order) and ``searched`` (params with more than one choice).
 
-    Everything is read in one transaction with a handful of queries (Optuna's
-    ``get_trials`` takes ~15 s for 2,000 trials x 50 points; this takes well under one).
-    Raises ValueError when the storage has no such study.
+    The study is read with one query per Optuna table, not per trial (Optuna's
+    ``get_trials`` takes ~15 s for 2,000 trials x 50 points). Reading a live study is safe:
+    a trial written between two queries shows up partly (no key yet: not counted) or not
+    at all. Raises ValueError when the storage cannot be read or has no such study.
     """
     import pandas as pd
     from sqlalchemy import create_engine, inspect, text
+    from sqlalchemy.exc import SQLAlchemyError
 
     from sweeper.storage import SQLITE_TIMEOUT, redact, resolve_url, sqlite_path
 
@@ -176,6 +179,9 @@ def load_study_frame(storage_url: str, study_name: str) -> pd.DataFrame:
             study_attrs = query(
                 "SELECT key, value_json FROM study_user_attributes WHERE study_id = :study"
             )
+    except SQLAlchemyError as e:  # unreachable server, locked or corrupt file
+        reason = str(getattr(e, "orig", None) or e).strip().splitlines()[0]
+        raise ValueError(f"storage: cannot read {redact(storage_url)}: {reason}") from None
     finally:
         engine.dispose()
     return _build_frame(study_name, trials, values, user_attrs, params, intermediate, study_attrs)
@@ -195,7 +201,9 @@ def _build_frame(study_name, trials, values, user_attrs, params, intermediate, s
         t: v if special[kind] is None else special[kind]
         for t, v, kind in values.itertuples(index=False)
     }
-    fallback: dict[int, dict[int, float]] = {}
+    fallback: dict[int, dict[int, float]] = {}  # intermediate values of trials with no curve
+    with_curve = {t for t, attrs in attrs_by_trial.items() if attrs.get("curve")}
+    intermediate = intermediate[~intermediate["trial_id"].isin(with_curve)]
     for t, step, v, kind in intermediate.itertuples(index=False):
         fallback.setdefault(t, {})[int(step)] = v if special[kind] is None else special[kind]
     distributions: dict[str, Any] = {}  # distribution_json -> distribution, parsed once
@@ -209,7 +217,7 @@ def _build_frame(study_name, trials, values, user_attrs, params, intermediate, s
         if len(getattr(distribution, "choices", (0, 1))) > 1:
             searched[name] = None
 
-    rows, curves, metric_names = [], [], {}
+    rows, parsed, metric_names = [], [], {}
     for trial_id, number, state in trials.sort_values("number").itertuples(index=False):
         attrs = attrs_by_trial.get(trial_id, {})
         row = {c: attrs.get(c) for c in TRIAL_COLUMNS}
@@ -220,7 +228,7 @@ def _build_frame(study_name, trials, values, user_attrs, params, intermediate, s
             points = sorted(fallback.get(trial_id, {}).items())
             curve = {"step": [s for s, _ in points], "success_rate": [v for _, v in points]}
         steps = np.asarray(curve["step"], dtype=np.int64)
-        columns = {"step": steps}
+        columns = {}
         for name, column in curve.items():
             if name == "step":
                 continue
@@ -231,10 +239,8 @@ def _build_frame(study_name, trials, values, user_attrs, params, intermediate, s
                 )
             metric_names[name] = None
             columns[name] = np.asarray(column, dtype=np.float64)  # null (NaN) -> nan
-        columns["_row"] = np.full(max(steps.size, 1), len(rows))
-        if steps.size == 0:
-            columns["step"] = np.array([-1])
-        curves.append(pd.DataFrame(columns))
+        # a trial without evaluations keeps one row, with step -1 (missing)
+        parsed.append((steps if steps.size else np.array([-1]), columns))
         rows.append(row)
     if not rows:
         raise ValueError(f"study {study_name!r} has no trials yet: nothing to aggregate")
@@ -242,16 +248,18 @@ def _build_frame(study_name, trials, values, user_attrs, params, intermediate, s
     study = {k: json.loads(v) for k, v in study_attrs.itertuples(index=False)}
     order = [m for m in study.get("metric_names", []) if m in metric_names]
     metrics = order + [m for m in metric_names if m not in order]
-    long = pd.concat(curves, ignore_index=True)
-    for name in metrics:
-        if name not in long:
-            long[name] = np.nan
+    steps = np.concatenate([steps for steps, _ in parsed])
+    values = {
+        name: np.concatenate([c.get(name, np.full(t.size, np.nan)) for t, c in parsed])
+        for name in metrics
+    }
     head = pd.DataFrame(rows)
     for column in head.columns[head.columns.str.startswith("params_")]:  # keep 16 an int
         head[column] = pd.Series([r.get(column) for r in rows], dtype=object)
-    frame = head.iloc[long["_row"].to_numpy()].reset_index(drop=True)
-    frame.insert(len(TRIAL_COLUMNS), "step", long["step"].where(long["step"] >= 0).astype("Int64"))
-    frame = pd.concat([frame, long[metrics].astype("float64")], axis=1)
+    repeats = [t.size for t, _ in parsed]
+    frame = head.iloc[np.repeat(np.arange(len(rows)), repeats)].reset_index(drop=True)
+    frame["step"] = pd.Series(steps).where(steps >= 0).astype("Int64")
+    frame = pd.concat([frame, pd.DataFrame(values)], axis=1)
     params_columns = [c for c in frame.columns if c.startswith("params_")]
     frame = frame[[*TRIAL_COLUMNS, "step", *metrics, *sorted(params_columns)]]
     for column in ("config_id", "seed", "attempts", "diverged_step"):
@@ -297,7 +305,6 @@ def method_curves(frame: pd.DataFrame) -> pd.DataFrame:
     ``n`` counts the trials with a value there (a diverged trial has no distances after its
     divergence, so those means cover fewer trials).
     """
-    import pandas as pd
 
     rows = scored(frame).dropna(subset=["step"])
     metrics = frame.attrs["metrics"]
@@ -307,16 +314,10 @@ def method_curves(frame: pd.DataFrame) -> pd.DataFrame:
     )
     stats = stats.rename(columns={"count": "n"}).reset_index()
     order = {m: i for i, m in enumerate(methods_of(frame))}
-    metric_order = {m: i for i, m in enumerate(metrics)}
-    stats = stats.sort_values(
-        ["method", "metric", "step"],
-        key=lambda s: (
-            s.map(order)
-            if s.name == "method"
-            else (s.map(metric_order) if s.name == "metric" else s)
-        ),
-    )
-    return pd.DataFrame(stats).reset_index(drop=True)
+    order.update({m: i for i, m in enumerate(metrics)})
+    sort = stats.assign(_method=stats["method"].map(order), _metric=stats["metric"].map(order))
+    sort = sort.sort_values(["_method", "_metric", "step"])
+    return sort.drop(columns=["_method", "_metric"]).reset_index(drop=True)
 
 
 def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) -> pd.DataFrame:
@@ -457,7 +458,7 @@ def aggregate(
         say(f"computed the AUC table and curves; drawing figures in {out}")
         figures = _draw_figures(frame, curves, table, out)
         report = out / "report.md"
-        report.write_text(_report(frame, table, improvement, figures, alive), encoding="utf-8")
+        report.write_text(_report(frame, table, improvement, alive), encoding="utf-8")
         if dashboard and store is not None:
             _save_to_dashboard(storage, store.study_id, frame, curves, table, improvement)
             say("saved the comparison figures and note into the study (optuna-dashboard)")
@@ -487,11 +488,11 @@ def _draw_figures(
     frame: pd.DataFrame, curves: pd.DataFrame, table: pd.DataFrame, out: Path
 ) -> list[Path]:
     """Write the PNG figures; return their paths."""
-    paths = [_draw_mean_curves(frame, curves, out / "curves.png")]
-    for metric in frame.attrs["metrics"]:
-        paths.append(_draw_trial_curves(frame, metric, out / f"trials_{metric}.png"))
-    paths.append(_draw_auc(frame, table, out / "auc.png"))
-    return paths
+    return [
+        _draw_mean_curves(frame, curves, out / "curves.png"),
+        _draw_trial_curves(frame, out / "trials.png"),
+        _draw_auc(frame, table, out / "auc.png"),
+    ]
 
 
 def _env(frame: pd.DataFrame) -> str | None:
@@ -514,7 +515,7 @@ def _panels(count: int, width: float, height: float, **kwargs: Any):
 
 
 def _style_axes(axes, metric: str, env: str | None) -> None:
-    axes.set_ylabel(metric_label(metric, env))
+    axes.set_ylabel(metric_label(metric, env).replace(" (", "\n("))  # the unit below
     axes.grid(alpha=0.3)
     if metric.endswith("_rate"):
         axes.set_ylim(-0.03, 1.03)
@@ -553,56 +554,66 @@ def _draw_mean_curves(frame, curves, path: Path) -> Path:
     return path
 
 
-def _draw_trial_curves(frame, metric: str, path: Path) -> Path:
-    """One panel per method, one line per trial: done ones coloured by AUC, others grey/red."""
+def _draw_trial_curves(frame, path: Path) -> Path:
+    """A row per metric, a column per method, a line per trial: done trials coloured by
+    their AUC, running ones grey dashed, failed ones red dotted."""
     import matplotlib as mpl
     import numpy as np
     from matplotlib.collections import LineCollection
+    from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
 
-    methods = methods_of(frame)
-    figure, grid = _panels(len(methods), 4.2, 3.4, sharey=True)
-    current = frame[frame["counted"]].dropna(subset=["step"])
+    methods, metrics = methods_of(frame), frame.attrs["metrics"]
+    size = (3.3 * len(methods) + 1.4, 2.5 * len(metrics) + 1.0)
+    figure = Figure(figsize=size, layout="constrained")
+    grid = figure.subplots(len(metrics), len(methods), squeeze=False, sharex=True, sharey="row")
+    current = frame[frame["counted"]].dropna(subset=["step"]).sort_values(["trial", "step"])
     aucs = current.loc[current["state"] == "COMPLETE", "auc"].dropna()
     low, high = (aucs.min(), aucs.max()) if len(aucs) else (0.0, 1.0)
     if high - low < 0.02:  # one value (or nearly): a readable scale around it
         low, high = max(low - 0.05, 0.0), min(high + 0.05, 1.0)
     norm, cmap = mpl.colors.Normalize(low, high), mpl.colormaps["viridis"]
-    other = {"RUNNING": ("0.5", "dashed", "running"), "FAIL": ("tab:red", "dotted", "failed")}
+    # state -> (colour, line style, legend label); done trials take their AUC's colour
+    looks = {"RUNNING": ("0.5", "dashed", "running"), "FAIL": ("tab:red", "dotted", "failed")}
     shown = set()
-    for axes, method in zip(grid.flat, methods, strict=False):
-        lines, colours, styles = [], [], []
-        for _, trial in current[current["method"] == method].groupby("trial"):
-            points = trial[["step", metric]].to_numpy(dtype=float)
-            lines.append(points[np.isfinite(points[:, 1])])
-            state = trial["state"].iloc[0]
-            if state == "COMPLETE":
-                colours.append(cmap(norm(trial["auc"].iloc[0])))
-                styles.append("solid")
-            else:
-                colour, style, _ = other.get(state, other["RUNNING"])
-                colours.append(colour)
-                styles.append(style)
-                shown.add("FAIL" if state == "FAIL" else "RUNNING")
-        axes.add_collection(LineCollection(lines, colors=colours, linestyles=styles, lw=1.2))
-        axes.autoscale()
-        states = current.loc[current["method"] == method].drop_duplicates("trial")["state"]
-        counts = states.map({"COMPLETE": "done", "FAIL": "failed"}).fillna("running")
-        axes.set_title(
-            f"{method}: " + ", ".join(f"{n} {c}" for c, n in counts.value_counts().items())
-        )
-        _style_axes(axes, metric, _env(frame))
+    for column, method in enumerate(methods):
+        part = current[current["method"] == method]
+        # each trial's rows are contiguous: split the columns at the trial boundaries
+        starts = np.flatnonzero(np.diff(part["trial"].to_numpy(), prepend=-1))
+        states = part["state"].to_numpy()[starts]
+        states = np.where(np.isin(states, ["COMPLETE", "FAIL"]), states, "RUNNING")
+        colours = [
+            cmap(norm(a)) if s == "COMPLETE" else looks[s][0]
+            for s, a in zip(states, part["auc"].to_numpy()[starts], strict=True)
+        ]
+        styles = ["solid" if s == "COMPLETE" else looks[s][1] for s in states]
+        shown.update(s for s in states if s != "COMPLETE")
+        steps = part["step"].to_numpy(dtype=float)
+        for row, metric in enumerate(metrics):
+            points = np.column_stack([steps, part[metric].to_numpy(dtype=float)])
+            lines = [p[np.isfinite(p[:, 1])] for p in np.split(points, starts[1:])]
+            axes = grid[row, column]
+            axes.add_collection(LineCollection(lines, colors=colours, linestyles=styles, lw=1))
+            axes.autoscale()
+            _style_axes(axes, metric, _env(frame))
+            if column:
+                axes.set_ylabel("")
+        names, counts = np.unique(states, return_counts=True)
+        words = {"COMPLETE": "done", "FAIL": "failed", "RUNNING": "running"}
+        summary = ", ".join(f"{n} {words[s]}" for s, n in zip(names, counts, strict=True))
+        grid[0, column].set_title(f"{method}: {summary or 'no trial yet'}")
+    for axes in grid[-1]:
+        axes.set_xlabel("environment steps")
     if shown:
         handles = [
-            Line2D([], [], color=other[s][0], linestyle=other[s][1], label=other[s][2])
+            Line2D([], [], color=looks[s][0], linestyle=looks[s][1], label=looks[s][2])
             for s in sorted(shown, reverse=True)
         ]
         figure.legend(handles=handles, loc="outside lower center", ncols=2)
-    bar = figure.colorbar(mpl.cm.ScalarMappable(norm, cmap), ax=grid, shrink=0.9)
+    bar = figure.colorbar(mpl.cm.ScalarMappable(norm, cmap), ax=grid, shrink=0.6)
     bar.set_label("trial AUC (normalised area under success rate)")
-    study = frame.attrs["study"]
-    figure.suptitle(f"{study}: {metric.replace('_', ' ')} of every trial, coloured by its AUC")
-    figure.savefig(path, dpi=110)
+    figure.suptitle(f"{frame.attrs['study']}: every trial's curves, coloured by its AUC")
+    figure.savefig(path, dpi=100)
     return path
 
 
@@ -711,7 +722,7 @@ seeded. Probability of improvement of A over B: over the (SAC configuration, see
 both are done, the fraction where A's AUC is higher, ties counting one half."""
 
 
-def _report(frame, table, improvement, figures: list[Path], driver_alive: bool) -> str:
+def _report(frame, table, improvement, driver_alive: bool) -> str:
     study = frame.attrs["study_attrs"]
     trials = trial_rows(frame)
     lines = [
@@ -737,16 +748,10 @@ def _report(frame, table, improvement, figures: list[Path], driver_alive: bool) 
         "",
         "![mean and std of every metric per method](curves.png)",
         "",
-    ]
-    for metric in frame.attrs["metrics"]:
-        label = metric.replace("_", " ")
-        lines += [
-            f"### Every trial: {label}",
-            "",
-            f"![{label} of every trial](trials_{metric}.png)",
-            "",
-        ]
-    lines += [
+        "Every trial (grey dashed: running; red dotted: failed):",
+        "",
+        "![every trial's curves coloured by AUC](trials.png)",
+        "",
         "Data: `frame.csv` (one row per trial and evaluation step), `curves.csv`, "
         "`auc_table.csv`, `improvement.csv`.",
         "",
@@ -803,12 +808,26 @@ def _save_to_dashboard(storage, study_id: int, frame, curves, table, improvement
         )
         save_plotly_graph_object(study, figure, graph_object_id=f"sweeper-curves-{metric}")
     done = table[table["n"] > 0]
+    aucs = trial_rows(scored(frame))
     auc_figure = go.Figure(
+        go.Box(
+            x=aucs["method"].tolist(),
+            y=aucs["auc"].tolist(),
+            text=aucs["key"].tolist(),
+            boxpoints="all",
+            jitter=0.4,
+            pointpos=0,
+            name="trial AUCs",
+            marker={"color": "rgba(127, 127, 127, 0.7)"},
+            line={"color": "rgba(127, 127, 127, 0.7)"},
+        )
+    )
+    auc_figure.add_trace(
         go.Scatter(
             x=done["method"].tolist(),
             y=done["iqm"].tolist(),
             mode="markers",
-            marker={"size": 12, "symbol": "diamond"},
+            marker={"size": 12, "symbol": "diamond", "color": "rgba(214, 39, 40, 1)"},
             error_y={
                 "type": "data",
                 "symmetric": False,

@@ -52,7 +52,8 @@ class TrialWorker:
         self._events: list[tuple[str, Any, Any]] = []
 
     def run(self, token: str, config: Any) -> dict[str, Any]:
-        """Run ``train(config, report)``; return ``{"result": ...}`` or ``{"error", "traceback"}``."""
+        """Run ``train(config, report)``: ``{"result"}`` or ``{"error", "traceback"}``, and
+        ``"events"``: the reports not drained yet."""
         with self._lock:
             self._events = []
         where = {"node": ray.util.get_node_ip_address(), "pid": os.getpid()}
@@ -62,12 +63,14 @@ class TrialWorker:
             from agent import train
         try:
             result = train(config, report=lambda step, metrics: self._push(token, step, metrics))
+            outcome: dict[str, Any] = {"result": result}
         except Exception as e:
-            return {"error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc()}
-        return {"result": result}
+            outcome = {"error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc()}
+        outcome["events"] = self.drain()  # what no drain call has fetched yet
+        return outcome
 
     def drain(self) -> list[tuple[str, Any, Any]]:
-        """Events since the last drain: ``(token, "where", {...})`` or ``(token, step, metrics)``."""
+        """Events since the last drain: ``(token, "where", {...})``, ``(token, step, metrics)``."""
         with self._lock:
             events, self._events = self._events, []
         return events
@@ -147,11 +150,6 @@ class WorkerPool:
         """How many actors have no trial."""
         return sum(slot.token is None for slot in self._slots)
 
-    @property
-    def busy(self) -> list[str]:
-        """Tokens of the trials in flight."""
-        return [slot.token for slot in self._slots if slot.token is not None]
-
     def submit(self, token: str, config: Any) -> None:
         """Start ``config`` on an idle actor; ``token`` names it in the events."""
         slot = next(slot for slot in self._slots if slot.token is None)
@@ -175,7 +173,7 @@ class WorkerPool:
         done, _ = ray.wait(refs, num_returns=len(refs), timeout=0)
         events: list[Event] = []
         for slot in busy:
-            if slot.run_ref in done:  # the trial's last reports come before its end
+            if slot.run_ref in done:  # a drain in flight holds reports older than run's
                 ray.wait([slot.drain_ref], timeout=10)
             events += self._collect_drain(slot)
         for index, slot in enumerate(self._slots):
@@ -189,6 +187,7 @@ class WorkerPool:
                 ray.kill(slot.actor)
                 self._slots[index] = self._new_slot()
                 continue
+            events += self._events(slot, outcome["events"])
             slot.token, slot.run_ref = None, None
             if "error" in outcome:
                 events.append(Errored(token, outcome["error"], outcome["traceback"]))
@@ -206,6 +205,10 @@ class WorkerPool:
             drained = ray.get(ready[0])
         except ray.exceptions.RayError:
             return []  # the worker is gone; its run ref says so
+        return self._events(slot, drained)
+
+    @staticmethod
+    def _events(slot: _Slot, drained: list[tuple[str, Any, Any]]) -> list[Event]:
         events: list[Event] = []
         for token, step, payload in drained:
             if token != slot.token:

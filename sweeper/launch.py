@@ -18,7 +18,9 @@ failed or another driver runs the study, 2 bad input, 130 interrupted.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import math
 import signal
 import sys
 import time
@@ -30,6 +32,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 if TYPE_CHECKING:
     from sweeper.plan import Plan, PlanEntry
+    from sweeper.progress import Progress
     from sweeper.spec import StudySpec
     from sweeper.storage import StudyStore
 
@@ -49,8 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--address",
         metavar="ADDR",
-        help="join the Ray cluster at ADDR ('auto', 'host:6379' or 'ray://host:10001') "
-        "instead of starting a local Ray",
+        help="join the Ray cluster at ADDR ('auto' or 'host:6379') instead of starting a local Ray",
     )
     parser.add_argument(
         "--max-concurrent",
@@ -96,13 +98,13 @@ def prepare(
 def run(args: argparse.Namespace) -> int:
     """``sweeper launch``: returns the exit code."""
     try:
-        spec, plan = prepare(args.spec, args.storage, args.address, args.max_concurrent)
-    except ValueError as e:  # SpecError, StorageError
-        print(f"sweeper launch: {e}", file=sys.stderr)
-        return 2
-    try:
+        try:
+            spec, plan = prepare(args.spec, args.storage, args.address, args.max_concurrent)
+        except ValueError as e:  # SpecError, StorageError
+            print(f"sweeper launch: {e}", file=sys.stderr)
+            return 2
         return launch(spec, plan)
-    except KeyboardInterrupt:  # before or after the driver loop, which handles its own
+    except KeyboardInterrupt:  # outside the driver loop, which handles its own
         print("\nsweeper launch: stopped", file=sys.stderr)
         return 130
 
@@ -175,46 +177,92 @@ def launch(
 ) -> int:
     """Run (or resume) the study of a validated ``spec``; return the exit code.
 
-    ``train`` replaces ``agent.train`` in the workers (tests). A Ray that is already
-    initialised is used and left running; otherwise one is started (local, or
-    ``spec.execution.address``) and shut down at the end.
+    Ray comes first, so a bad address writes nothing. A Ray that is already initialised is
+    used and left running; otherwise one is started (local, or ``execution.address``) and
+    shut down at the end. ``train`` replaces ``agent.train`` in the workers (tests).
     """
+    import ray
+
+    from sweeper.execution import resources_fit, start_ray
+
+    stream = sys.stderr if stream is None else stream
+    execution = spec.execution
+    cpus, gpus = execution.cpus_per_trial, execution.gpus_per_trial
+    try:
+        started_ray = start_ray(
+            execution.address, num_cpus=math.ceil(execution.max_concurrent * cpus)
+        )
+    except Exception as e:  # ConnectionError, an auth error, ...
+        where = f"the Ray cluster at {execution.address!r}" if execution.address else "local Ray"
+        reason = " ".join(str(e).split())[:500]
+        print(f"sweeper launch: execution.address: cannot reach {where}: {reason}", file=stream)
+        return 2
+    try:
+        fit = resources_fit(cpus, gpus)
+        if fit < 1:
+            print(
+                f"sweeper launch: execution: a trial needs {cpus:g} CPUs and {gpus:g} GPUs, "
+                f"more than the Ray cluster has ({ray.cluster_resources()})",
+                file=stream,
+            )
+            return 2
+        if fit < execution.max_concurrent:
+            print(
+                f"sweeper launch: note: the Ray cluster holds {fit} trials at once, "
+                f"not execution.max_concurrent={execution.max_concurrent}",
+                file=stream,
+            )
+        return _run_study(spec, plan, min(fit, execution.max_concurrent), train, stream)
+    finally:
+        if started_ray:
+            ray.shutdown()
+
+
+def _run_study(
+    spec: StudySpec,
+    plan: Plan,
+    concurrency: int,
+    train: Callable[..., Any] | None,
+    stream: TextIO,
+) -> int:
+    """Open the study as its driver, sync it with the plan and run what is left."""
     import optuna
 
     from sweeper.progress import Progress
     from sweeper.storage import StorageError, StudyBusy, StudyStore, open_storage, redact
 
-    stream = sys.stderr if stream is None else stream
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     url = spec.storage_url
     attrs = study_attrs(spec, plan)
     storage = open_storage(url)
     try:
-        store = StudyStore.open_or_create(storage, spec.study, attrs)
-        store.claim_driver()
-    except (StorageError, StudyBusy) as e:
-        print(f"sweeper launch: {e}", file=stream)
-        return 2 if isinstance(e, StorageError) else 1
-    if store.attrs.get("revision") != attrs["revision"]:
-        print(
-            f"sweeper launch: note: the study began at code revision "
-            f"{store.attrs.get('revision')}; this is {attrs['revision']}",
-            file=stream,
-        )
-    try:
-        todo = store.sync(plan.entries, plan.hash)
-        total = len(plan.entries)
-        print(
-            f"study {spec.study!r} in {redact(url)}: {total - len(todo)} of {total} trials "
-            f"done, {len(todo)} to run",
-            file=stream,
-        )
-        if not todo:
-            return 0
-        progress = Progress(spec.study, plan.keys(), spec.budget.env_steps, stream)
-        return _drive(spec, store, todo, progress, train, stream)
+        try:
+            store = StudyStore.open_or_create(storage, spec.study, attrs)
+            store.claim_driver()
+        except (StorageError, StudyBusy) as e:
+            print(f"sweeper launch: {e}", file=stream)
+            return 2 if isinstance(e, StorageError) else 1
+        try:
+            if store.attrs.get("revision") != attrs["revision"]:
+                print(
+                    f"sweeper launch: note: the study began at code revision "
+                    f"{store.attrs.get('revision')}; this is {attrs['revision']}",
+                    file=stream,
+                )
+            todo = store.sync(plan.entries, plan.hash)
+            total = len(plan.entries)
+            print(
+                f"study {spec.study!r} in {redact(url)}: {total - len(todo)} of {total} "
+                f"trials done, {len(todo)} to run",
+                file=stream,
+            )
+            if not todo:
+                return 0
+            progress = Progress(spec.study, plan.keys(), spec.budget.env_steps, stream)
+            return _drive(spec, store, todo, min(concurrency, len(todo)), progress, train, stream)
+        finally:
+            store.release_driver()
     finally:
-        store.release_driver()
         storage.remove_session()
         storage.engine.dispose()
 
@@ -223,52 +271,26 @@ def _drive(
     spec: StudySpec,
     store: StudyStore,
     todo: list[tuple[PlanEntry, Any]],
-    progress: Any,
+    concurrency: int,
+    progress: Progress,
     train: Callable[..., Any] | None,
     stream: TextIO,
 ) -> int:
     """The driver loop: dispatch keys to workers, write what comes back."""
-    import ray
-
-    from sweeper.execution import (
-        Errored,
-        Finished,
-        Lost,
-        Reported,
-        Started,
-        WorkerPool,
-        resources_fit,
-        start_ray,
-    )
+    from sweeper.execution import Errored, Finished, Lost, Reported, Started, WorkerPool
 
     execution = spec.execution
-    cpus, gpus = execution.cpus_per_trial, execution.gpus_per_trial
-    concurrency = min(execution.max_concurrent, len(todo))
-    started_ray = start_ray(execution.address, num_cpus=max(1, int(concurrency * cpus + 0.999)))
     pool = None
     jobs: dict[str, _Job] = {}
     previous_handler = _sigterm_to_interrupt()
     try:
-        fit = resources_fit(cpus, gpus)
-        if fit < 1:
-            print(
-                f"sweeper launch: execution: a trial needs {cpus:g} CPUs and {gpus:g} GPUs, "
-                f"more than the Ray cluster offers ({ray.cluster_resources()})",
-                file=stream,
-            )
-            return 2
-        if fit < concurrency:
-            print(
-                f"sweeper launch: note: the Ray cluster holds {fit} trials at once, "
-                f"not execution.max_concurrent={concurrency}",
-                file=stream,
-            )
-            concurrency = fit
-        pool = WorkerPool(concurrency, cpus=cpus, gpus=gpus, train=train)
+        pool = WorkerPool(
+            concurrency, cpus=execution.cpus_per_trial, gpus=execution.gpus_per_trial, train=train
+        )
         queue = deque(todo)
         failed = 0
         last_beat = time.monotonic()
-        for entry, trial in todo:
+        for entry, _ in todo:
             progress.set_state(entry.key, "left")
 
         def dispatch(job: _Job) -> None:
@@ -281,6 +303,14 @@ def _drive(
                 )
             pool.submit(job.entry.key, config)
             progress.set_state(job.entry.key, "running")
+
+        def give_up(job: _Job, attrs: dict[str, Any]) -> None:
+            nonlocal failed
+            store.fail(job.trial_id, {"outcome": "failed", "curve": job.curve(), **attrs})
+            del jobs[job.entry.key]
+            failed += 1
+            progress.set_state(job.entry.key, "failed")
+            progress.note(f"{job.entry.key} failed: {attrs['error']}")
 
         while queue or jobs:
             while pool.idle and queue:
@@ -305,19 +335,7 @@ def _drive(
                     progress.set_state(job.entry.key, outcome)
                     progress.note(f"{job.entry.key} {outcome}: AUC {event.result.auc:.3f}")
                 elif isinstance(event, Errored):
-                    store.fail(
-                        job.trial_id,
-                        {
-                            "outcome": "failed",
-                            "error": event.error,
-                            "traceback": event.traceback,
-                            "curve": job.curve(),
-                        },
-                    )
-                    del jobs[event.token]
-                    failed += 1
-                    progress.set_state(job.entry.key, "failed")
-                    progress.note(f"{job.entry.key} failed: {event.error}")
+                    give_up(job, {"error": event.error, "traceback": event.traceback})
                 elif isinstance(event, Lost):
                     job.deaths.append(event.error)
                     store.set_attrs(job.trial_id, {"worker_deaths": job.deaths})
@@ -326,14 +344,7 @@ def _drive(
                         dispatch(job)
                     else:
                         error = f"worker died {job.attempts} times; last: {event.error}"
-                        store.fail(
-                            job.trial_id,
-                            {"outcome": "failed", "error": error, "curve": job.curve()},
-                        )
-                        del jobs[event.token]
-                        failed += 1
-                        progress.set_state(job.entry.key, "failed")
-                        progress.note(f"{job.entry.key} failed: {error}")
+                        give_up(job, {"error": error})
             if time.monotonic() - last_beat > HEARTBEAT_SECONDS:
                 store.heartbeat()
                 last_beat = time.monotonic()
@@ -353,10 +364,9 @@ def _drive(
             pool.shutdown()
             pool = None
         for job in jobs.values():
-            try:
+            # it may have been stopped while being told; then the next sync reaps it
+            with contextlib.suppress(Exception):
                 store.interrupt(job.trial_id, "stopped by the user", None)
-            except Exception:  # e.g. stopped while it was being told; the next sync reaps it
-                pass
         progress.close()
         print(
             f"\nsweeper launch: stopped; {len(jobs)} trial(s) in flight were interrupted and "
@@ -368,8 +378,6 @@ def _drive(
         _restore_sigterm(previous_handler)
         if pool is not None:
             pool.shutdown()
-        if started_ray:
-            ray.shutdown()
 
 
 def _record_result(store: StudyStore, job: _Job, result: Any) -> None:

@@ -50,11 +50,11 @@ def status_lines(study: str, url: str, keys: list[str], plan_hash: str) -> list[
     from sweeper.storage import (
         StorageError,
         StudyStore,
-        sqlite_path,
         current_trials,
         ledger,
         open_storage,
         resolve_url,
+        sqlite_path,
     )
 
     path = sqlite_path(resolve_url(url))

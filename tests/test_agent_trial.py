@@ -152,7 +152,6 @@ def _env_exists(name: str) -> bool:
     return importlib.util.find_spec(ENV_ENTRY_POINTS[name].split(":")[0]) is not None
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("env", [e for e in ENV_NAMES if _env_exists(e)])
 @pytest.mark.parametrize("method", ["pixel", "state"])
 def test_every_env_end_to_end(env: str, method: str) -> None:
@@ -178,3 +177,13 @@ def test_encoder_methods(method: str) -> None:
         method=method, total_steps=50, eval_every=50, encoder_params=params.get(method, {})
     )
     assert agent.train(config).outcome == "completed"
+
+
+def test_checkpoint_at_an_object_store_uri() -> None:
+    config = tiny(
+        total_steps=100, seed_steps=100, checkpoint_every=50, checkpoint_dir="memory://gcrl/t0"
+    )
+    first = agent.train(config)
+    again = agent.train(config)
+    assert (first.resumed_from, again.resumed_from) == (None, 50)
+    assert again.metrics == first.metrics

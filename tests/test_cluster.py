@@ -32,14 +32,14 @@ def write_spec(path: Path, study: str, checkpoints: Path) -> None:
 
     spec = load_yaml((REPO / "studies" / "ci.yaml").read_text())
     spec.update(study=study, trials_per_method=2, checkpoints=str(checkpoints))
-    spec["budget"].update(env_steps=300, seed_steps=100, eval_every=100, eval_episodes=2)
+    spec["budget"].update(env_steps=300, seed_steps=100, eval_every=100, eval_episodes=1)
     spec["execution"].update(max_concurrent=2, cpus_per_trial=1, retries=2, checkpoint_every=100)
     path.write_text(yaml.safe_dump(spec))
 
 
 @pytest.fixture
 def postgres():
-    """PostgreSQL's URL, and the names of the studies to delete afterwards."""
+    """Optuna's storage on PostgreSQL and a fresh study name; the study is deleted after."""
     import optuna
     import sqlalchemy
 
@@ -48,11 +48,12 @@ def postgres():
             connection.execute(sqlalchemy.text("select 1"))
     except Exception as e:  # no server here: nothing to test against
         pytest.skip(f"PostgreSQL not reachable at {PG_URL}: {type(e).__name__}")
-    created: list[str] = []
-    yield PG_URL, created
-    for name in created:
-        with contextlib.suppress(KeyError):  # never created
-            optuna.delete_study(study_name=name, storage=PG_URL)
+    storage = optuna.storages.RDBStorage(PG_URL)
+    study = f"cluster_test_{uuid.uuid4().hex[:10]}"
+    yield storage, study
+    with contextlib.suppress(KeyError):  # never created
+        optuna.delete_study(study_name=study, storage=storage)
+    storage.engine.dispose()
 
 
 @pytest.fixture
@@ -86,22 +87,21 @@ def _parent_pid(pid: int) -> int | None:
     return next(int(line.split()[1]) for line in status.splitlines() if line.startswith("PPid:"))
 
 
-def _trials(study_name: str):
+def _trials(storage, study_name: str):
     import optuna
 
     try:
-        return optuna.load_study(study_name=study_name, storage=PG_URL).get_trials(deepcopy=False)
+        return optuna.load_study(study_name=study_name, storage=storage).get_trials(deepcopy=False)
     except KeyError:  # not created yet
         return []
 
 
+@pytest.mark.slow  # about a minute: three Ray nodes, four trials, one re-run
 def test_study_survives_losing_a_worker_node(tmp_path, postgres, cluster):
     from optuna.trial import TrialState
 
-    _, created = postgres
+    storage, study = postgres
     ray_cluster, workers = cluster
-    study = f"cluster_test_{uuid.uuid4().hex[:10]}"
-    created.append(study)
     spec_path = tmp_path / "spec.yaml"
     checkpoints = tmp_path / "checkpoints"
     write_spec(spec_path, study, checkpoints)
@@ -119,7 +119,7 @@ def test_study_survives_losing_a_worker_node(tmp_path, postgres, cluster):
         removed = lost_key = None
         start = time.monotonic()
         while driver.poll() is None and time.monotonic() - start < DEADLINE:
-            running = [t for t in _trials(study) if t.state == TrialState.RUNNING]
+            running = [t for t in _trials(storage, study) if t.state == TrialState.RUNNING]
             for trial in running:
                 worker = trial.user_attrs.get("worker")
                 node_pid = worker and _parent_pid(worker["pid"])
@@ -147,7 +147,7 @@ def test_study_survives_losing_a_worker_node(tmp_path, postgres, cluster):
     assert driver.returncode == 0, output
     assert len(seen_on) >= 2, "trials ran on one node only"
 
-    trials = _trials(study)
+    trials = _trials(storage, study)
     complete = [t for t in trials if t.state == TrialState.COMPLETE]
     keys = [t.user_attrs["key"] for t in complete]
     assert len(complete) == 4 and len(set(keys)) == 4, keys  # exactly the budget, no duplicate

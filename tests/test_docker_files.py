@@ -7,6 +7,7 @@ scalable workers, and a launch command that `sweeper launch` accepts."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -58,9 +59,11 @@ def _run_compose(
     cmd = [*_compose(), "--project-directory", str(DOCKER)]
     for f in files:
         cmd += ["-f", str(f)]
-    # An empty env file when none is given, so a developer's docker/.env cannot leak in.
+    # Only the given env file (none: an empty one) and no shell variables, so a developer's
+    # docker/.env or exported POSTGRES_PASSWORD cannot leak in.
     cmd += ["--env-file", str(env_file or Path("/dev/null")), *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=30, cwd=REPO)
+    env = {"PATH": os.environ.get("PATH", ""), "HOME": os.environ.get("HOME", "/")}
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=30, cwd=REPO, env=env)
 
 
 @pytest.fixture(scope="module")
@@ -168,6 +171,8 @@ def test_compose_services(config):
     assert head["command"][:3] == ["ray", "start", "--head"] and "--block" in head["command"]
     worker = services["ray-worker"]
     assert worker["command"][:3] == ["ray", "start", "--address=ray-head:6379"]
+    # Each worker counts only the CPUs it is limited to, or N workers would overbook the host.
+    assert f"--num-cpus={worker['cpus']:g}" in worker["command"]
     # --scale needs a worker without a fixed name, host port or swarm-only deploy section.
     assert not {"container_name", "ports", "deploy"} & set(worker)
     assert worker["depends_on"]["ray-head"]["condition"] == "service_healthy"

@@ -68,7 +68,7 @@ def test_shapes_determinism_and_zero_self_distance(name: str, size: int, vgg_wei
     np.testing.assert_array_equal(latent_reward(za, za), np.zeros(5, np.float32))
     # the batch it is in changes an encoding only by float rounding
     np.testing.assert_allclose(za[2:3], a.encode(x[2:3]), rtol=1e-4, atol=1e-4)
-    if name in ("linear", "conv", "vae", "cvae"):
+    if name in ("linear", "conv", "vae", "cvae") and size == 48:
         c = build(name, size, seed=1, **learned_options(name))
         assert not np.allclose(c.encode(x), za)  # the seed matters
 

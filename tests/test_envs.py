@@ -13,12 +13,25 @@ from agent.envs import ENV_ENTRY_POINTS, ENV_NAMES, check_env_name, gym_id, make
 MUJOCO_ENVS = ("fetch_reach", "fetch_push", "sawyer_door")
 
 
-@pytest.fixture(scope="module", params=ENV_NAMES)
-def env(request):
-    """One env per name, shared by the tests of this module (building one takes ~0.3 s)."""
-    e = make_env(request.param)
-    yield e
-    e.close()
+@pytest.fixture(scope="module")
+def envs():
+    """``envs(name, obs_mode)``: one env per name and mode, shared by this module's tests
+    (building one and its renderer takes ~0.5 s)."""
+    cache = {}
+
+    def get(name: str, obs_mode: str = "image"):
+        if (name, obs_mode) not in cache:
+            cache[name, obs_mode] = make_env(name, obs_mode=obs_mode)
+        return cache[name, obs_mode]
+
+    yield get
+    for e in cache.values():
+        e.close()
+
+
+@pytest.fixture(params=ENV_NAMES)
+def env(request, envs):
+    return envs(request.param)
 
 
 def snapshot(env) -> np.ndarray:
@@ -68,20 +81,18 @@ def test_goal_rendering_restores_state_and_frame_exactly(env):
     np.testing.assert_array_equal(env.render_image(), frame)
 
 
-def test_goal_rendering_does_not_change_the_episode():
-    """Two envs, same seed and actions; one re-renders its goal mid-episode."""
-    actions = np.random.default_rng(2).uniform(-1, 1, (6, 3))
+def test_goal_rendering_does_not_change_the_episode(env):
+    """Same seed and actions twice; the second time the goal is re-rendered mid-episode."""
+    actions = np.random.default_rng(2).uniform(-1, 1, (6, *env.action_space.shape))
     runs = []
     for rerender in (False, True):
-        env = make_env("fetch_push")
         env.reset(seed=3)
         frames = []
         for i, a in enumerate(actions):
             if rerender and i == 3:
                 env.set_goal_state(env.goal_state())
             frames.append(env.step(a)[0]["image"])
-        runs.append((np.stack(frames), env.controllable_state(), env.gripper_position()))
-        env.close()
+        runs.append((np.stack(frames), snapshot(env)))
     for a, b in zip(*runs, strict=True):
         np.testing.assert_array_equal(a, b)
 
@@ -96,16 +107,15 @@ def test_the_frame_shows_no_goal_marker(env):
 
 
 @pytest.mark.parametrize("name", MUJOCO_ENVS)
-def test_the_mocap_handles_are_hidden(name):
+def test_the_mocap_handles_are_hidden(name, envs):
     import mujoco
 
-    env = make_env(name)
+    env = envs(name)
     env.reset(seed=0)
     frame = env.render_image()
     env.data.mocap_pos[0] += 0.2
     mujoco.mj_forward(env.model, env.data)  # moves the mocap's geoms, not the arm
     np.testing.assert_array_equal(env.render_image(), frame)
-    env.close()
 
 
 def test_image_at_the_goal_matches_the_goal_image(env):
@@ -154,41 +164,53 @@ def test_same_seed_same_episode(env):
     np.testing.assert_array_equal(g_a, g_b)
 
 
+def test_reset_depends_only_on_the_generator(env):
+    """What trial checkpoints rely on: restoring ``np_random`` reproduces the next episode,
+    whatever the simulator went through before."""
+    env.reset(seed=12)
+    generator_state = env.np_random.bit_generator.state
+    expected = env.reset()[0]
+    env.reset(seed=13)
+    for _ in range(3):
+        env.step(env.action_space.sample())
+    env.np_random.bit_generator.state = generator_state
+    obs = env.reset()[0]
+    for key in obs:
+        np.testing.assert_array_equal(obs[key], expected[key])
+
+
 def test_different_seeds_give_different_goals(env):
     goals = [env.reset(seed=s)[0]["goal_image"] for s in (10, 11)]
     assert not np.array_equal(*goals)
 
 
 @pytest.mark.parametrize("name", MUJOCO_ENVS)
-def test_state_mode_never_renders(name):
-    env = make_env(name, obs_mode="state")
+def test_state_mode_never_renders(name, envs):
+    env = envs(name, "state")
     obs, _ = env.reset(seed=0)
     obs, *_ = env.step(np.zeros(3))
     assert env._renderer is None
     assert obs["state"].shape == env.observation_space["state"].shape
     np.testing.assert_array_equal(obs["goal_state"], env.goal_state().astype(np.float32))
-    env.close()
 
 
-def test_fetch_push_moves_the_arm_only():
-    env = make_env("fetch_push", obs_mode="state")
+def test_fetch_push_moves_the_arm_only(envs):
+    env = envs("fetch_push", "state")
     env.reset(seed=0)
     block = env.controllable_state()
     target = env.gripper_position() + np.array([0.05, -0.05, 0.1])
     np.testing.assert_allclose(env.set_gripper_position(target), target, atol=1e-3)
     np.testing.assert_array_equal(env.controllable_state(), block)
-    env.close()
 
 
-def test_sawyer_door_metrics_separate_angle_and_hand():
-    env = make_env("sawyer_door", obs_mode="state")
+def test_sawyer_door_metrics_separate_angle_and_hand(envs):
+    env = envs("sawyer_door", "state")
     env.reset(seed=0)
     goal = env.goal_state()
     env.set_controllable_state(goal + np.array([0.0, 0.0, 0.0, 0.1]))  # hand right, angle wrong
     info = env._info()
     assert (info["hand_success"], info["angle_success"], info["is_success"]) == (1.0, 0.0, 0.0)
     assert info["angle_distance"] == pytest.approx(0.1, abs=1e-6)
-    env.close()
 
 
 # ---- bad arguments: a ValueError that names the argument -------------------------------
@@ -215,13 +237,26 @@ def test_bad_constructor_arguments(name, kwargs, match):
 
 
 @pytest.mark.parametrize("name", MUJOCO_ENVS)
-def test_bad_camera(name):
+def test_unknown_camera_name(name):
     with pytest.raises(ValueError, match="camera must be one of"):
         make_env(name, camera="no_such_camera")
+
+
+def test_bad_free_camera():
+    import mujoco
+
+    from agent.envs._mujoco import make_camera
+
+    model = mujoco.MjModel.from_xml_string("<mujoco/>")
     with pytest.raises(ValueError, match="camera must be a camera name or a dict"):
-        make_env(name, camera={"lookat": [0, 0, 0], "distance": 1.0})
+        make_camera(model, {"lookat": [0, 0, 0], "distance": 1.0})
+    bad = {"lookat": [0, 0], "distance": 1.0, "azimuth": 0.0, "elevation": 0.0}
+    with pytest.raises(ValueError, match=r"camera\['lookat'\] must be 3 finite numbers"):
+        make_camera(model, bad)
     with pytest.raises(ValueError, match=r"camera\['distance'\] must be > 0"):
-        make_env(name, camera={"lookat": [0, 0, 0], "distance": 0, "azimuth": 0, "elevation": 0})
+        make_camera(model, {**bad, "lookat": [0, 0, 0], "distance": 0})
+    camera = make_camera(model, {**bad, "lookat": [1, 2, 3], "azimuth": 90})
+    assert camera.type == mujoco.mjtCamera.mjCAMERA_FREE and camera.azimuth == 90
 
 
 def test_sawyer_door_bad_options():
@@ -243,14 +278,13 @@ def test_bad_actions(env):
 
 
 @pytest.mark.parametrize("name", MUJOCO_ENVS)
-def test_bad_states(name):
-    env = make_env(name, obs_mode="state")
+def test_bad_states(name, envs):
+    env = envs(name, "state")
     env.reset(seed=0)
     with pytest.raises(ValueError, match="state must be"):
         env.set_controllable_state([np.nan] * len(env.state_names))
     with pytest.raises(ValueError, match="goal must be"):
         env.set_goal_state([0.0])
-    env.close()
 
 
 def test_step_before_reset():

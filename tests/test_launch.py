@@ -68,7 +68,9 @@ def check_ci_study(study: optuna.Study) -> None:
         assert attrs["plan_hash"] == study.user_attrs["plan_hash"]
         assert attrs["worker"]["pid"] > 0
         assert "hidden_sizes" in trial.params
-    assert "linear.latent_dim" in next(t for t in trials if t.user_attrs["method"] == "linear").params
+    assert (
+        "linear.latent_dim" in next(t for t in trials if t.user_attrs["method"] == "linear").params
+    )
     study_attrs = study.user_attrs
     assert study_attrs["plan"] == ["linear/0/0", "pixel/0/0"]
     assert study_attrs["spec"]["study"] == "ci"
@@ -234,3 +236,39 @@ def test_exception_and_divergence_are_recorded_then_relaunch_reruns_failed(tmp_p
     assert rerun.user_attrs["supersedes"] == [failed.number]
     assert rerun.state == TrialState.COMPLETE
     assert trials[diverged.number].datetime_complete == diverged.datetime_complete
+
+
+def test_progress_display():
+    import io
+
+    from sweeper.progress import Progress, format_seconds
+
+    assert format_seconds(3725) == "1:02:05"
+    keys = ["pixel/0/0", "pixel/1/0", "vae/0/0", "vae/1/0"]
+    stream = io.StringIO()
+    progress = Progress("s", keys, env_steps=1000, stream=stream, tty=True)
+    for key in keys[1:]:
+        progress.set_state(key, "left")  # pixel/0/0 was done before this launch
+    progress.eta(now=0.0)  # the clock starts: 1000 steps done
+    progress.set_state("pixel/1/0", "diverged")
+    progress.set_state("vae/0/0", "running")
+    progress.set_step("vae/0/0", 500)
+    rate, eta = progress.eta(now=10.0)
+    assert rate == 150.0  # (1000 + 500) steps in 10 s
+    assert eta == pytest.approx((4000 - 2500) / 150.0)
+    assert progress.lines(now=10.0) == [
+        "s: 2/4 trials done (1 diverged), 1 running, 0 failed | 150 env steps/s | ETA 0:00:10",
+        "  pixel  2/2 done",
+        "  vae    0/2 done  running 0/0 @ 500",
+    ]
+    progress.refresh(force=True)
+    progress.refresh(force=True)  # redrawn in place: cursor up 3 lines, clear
+    assert stream.getvalue().count("\x1b[3F\x1b[J") == 1
+    plain = io.StringIO()
+    progress = Progress("s", keys, env_steps=1000, stream=plain, tty=False)
+    progress.refresh(force=True)
+    progress.note("pixel/0/0 completed")
+    assert "\x1b" not in plain.getvalue()
+    assert plain.getvalue().splitlines()[1] == "pixel/0/0 completed"
+    with pytest.raises(ValueError, match="state must be one of"):
+        progress.set_state("pixel/0/0", "done")

@@ -219,8 +219,12 @@ def test_driver_lock(sqlite_url):
     store.storage.set_study_user_attr(store.study_id, "driver", live_other)
     with pytest.raises(StudyBusy, match=f"pid {os.getppid()}"):
         store.claim_driver()
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
-                          capture_output=True, text=True, check=True)
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     store.storage.set_study_user_attr(
         store.study_id, "driver", {**live_other, "pid": int(dead.stdout)}
     )

@@ -7,6 +7,7 @@ Import this module only from MuJoCo envs: it imports ``mujoco``.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar
 
@@ -126,7 +127,7 @@ def make_camera(model: mujoco.MjModel, camera: str | Mapping[str, Any]) -> mujoc
     scalars = [camera[k] for k in FREE_CAMERA_KEYS[1:]]
     if lookat.shape != (3,) or not np.all(np.isfinite(lookat)):
         raise ValueError(f"camera['lookat'] must be 3 finite numbers, got {camera['lookat']!r}")
-    if not all(isinstance(v, int | float) and math.isfinite(v) for v in scalars):
+    if not all(isinstance(v, numbers.Real) and math.isfinite(v) for v in scalars):
         raise ValueError(f"camera distance/azimuth/elevation must be finite numbers: {camera!r}")
     if camera["distance"] <= 0:
         raise ValueError(f"camera['distance'] must be > 0, got {camera['distance']}")

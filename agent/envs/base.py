@@ -56,8 +56,9 @@ class GoalImageEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     Observation (``obs_mode="image"``): ``{"image": uint8 HxWx3, "goal_image": uint8 HxWx3}``.
     Observation (``obs_mode="state"``): ``{"state": float32 [S], "goal_state": float32 [G]}``
     where ``state`` is the full task state the oracle needs and ``goal_state`` the goal.
-    Reward: the true negative goal distance (used only by the state oracle; image
-    methods replace it with their encoder reward). ``info`` has every key of
+    Reward: ``true_reward(controllable_state(), goal_state())``, the true negative goal
+    distance (used only by the state oracle; image methods replace it with their
+    encoder reward). ``info`` has every key of
     ``metric_names``; episodes truncate after ``EPISODE_STEPS`` and never terminate.
 
     Controllable state (used by ``encoders.diagnostics``): a vector in the space where

@@ -7,11 +7,13 @@ import pandas as pd
 
 from encoders.diagnostics.common import ControllableEnv, Progress
 
+EPISODE_STEPS = 50
+
 
 def random_exploration(
     env: ControllableEnv,
     episodes: int = 100,
-    steps: int = 50,
+    steps: int = EPISODE_STEPS,
     seed: int = 0,
     progress: bool = True,
 ) -> pd.DataFrame:
@@ -48,20 +50,16 @@ def random_frames(
     env: ControllableEnv, num_images: int, seed: int = 0, progress: bool = True
 ) -> np.ndarray:
     """``num_images`` camera frames (uint8 [N,H,W,3]) seen by a uniformly random policy in
-    episodes of 50 steps: what the learned encoders are fit on."""
+    episodes of ``EPISODE_STEPS`` frames (the reset frame, then one per step): what the
+    learned encoders are fit on."""
     env.action_space.seed(seed)
     bar = Progress("random-policy frames", num_images, progress)
     frames: list[np.ndarray] = []
-    episode = 0
     while len(frames) < num_images:
-        env.reset(seed=seed + episode)
-        episode += 1
-        frames.append(env.render_image())
-        for _ in range(49):
-            if len(frames) >= num_images:
-                break
+        if len(frames) % EPISODE_STEPS == 0:
+            env.reset(seed=seed + len(frames) // EPISODE_STEPS)
+        else:
             env.step(env.action_space.sample())
-            frames.append(env.render_image())
-            bar.update(len(frames))
-    bar.update(num_images)
-    return np.stack(frames[:num_images])
+        frames.append(env.render_image())
+        bar.update(len(frames))
+    return np.stack(frames)

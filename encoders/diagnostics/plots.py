@@ -38,9 +38,9 @@ def _save(fig, path: Path, title: str) -> Path:
 
 def plot_exploration(table: pd.DataFrame, path: Path, title: str) -> Path:
     """Bar chart of the random agent's success rates."""
-    fig, (ax,) = _grid(1, 5, 3.5)
+    fig, (ax,) = _grid(1, 6, 3.5)
     ax.bar(table["metric"], table["value"], color="tab:blue", label="random agent")
-    ax.set_xlabel("success flag reached at any step")
+    ax.set_xlabel("flag set at any step of an episode (success_rate: any flag)")
     ax.set_ylabel("share of episodes")
     ax.set_ylim(0, 1)
     ax.legend()
@@ -50,7 +50,7 @@ def plot_exploration(table: pd.DataFrame, path: Path, title: str) -> Path:
 def plot_gradient(table: pd.DataFrame, path: Path, title: str) -> Path:
     """Box plot of the per-state cosine distances, one box per encoder."""
     names = list(dict.fromkeys(table["encoder"]))
-    fig, (ax,) = _grid(1, max(4.0, 1.2 * len(names)), 3.5)
+    fig, (ax,) = _grid(1, max(6.0, 1.2 * len(names)), 3.5)
     data = [table.loc[table["encoder"] == n, "value"].to_numpy() for n in names]
     ax.boxplot(data, tick_labels=names, showmeans=True)
     ax.axhline(1.0, color="gray", linestyle="--", label="orthogonal (no agreement)")

@@ -1,0 +1,96 @@
+"""`sweeper dashboard`: optuna-dashboard served on the CI study, queried over HTTP."""
+
+from __future__ import annotations
+
+import json
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import optuna
+import pytest
+
+from sweeper import cli
+
+ROOT = Path(__file__).resolve().parent.parent
+#: no proxy: the dashboard is on this machine
+OPENER = urllib.request.build_opener(urllib.request.ProxyHandler({}))
+
+
+def get_json(url: str) -> dict:
+    with OPENER.open(url, timeout=30) as response:
+        return json.loads(response.read())
+
+
+def read_line(process: subprocess.Popen, timeout: float) -> str:
+    """The first stdout line of ``process``, or fail after ``timeout`` seconds."""
+    selector = selectors.DefaultSelector()
+    selector.register(process.stdout, selectors.EVENT_READ)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if selector.select(timeout=1.0):
+            return process.stdout.readline()
+        if process.poll() is not None:
+            break
+    pytest.fail(f"no address from `sweeper dashboard`: {process.stderr.read()[-2000:]}")
+
+
+def test_dashboard_shows_trials_curves_and_the_comparison(ci_study, ci_aggregate):
+    command = [sys.executable, "-m", "sweeper.cli", "dashboard", str(ci_study.spec)]
+    command += ["--storage", ci_study.storage_url, "--port", "0"]
+    process = subprocess.Popen(
+        command,
+        cwd=ci_study.workdir,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        line = read_line(process, timeout=120)
+        page = line.split()[1]  # "optuna-dashboard: http://127.0.0.1:PORT/dashboard/studies/ID"
+        assert page.startswith("http://127.0.0.1:")  # bound to localhost by default
+        base = page.split("/dashboard/")[0]
+        studies = get_json(f"{base}/api/studies")["study_summaries"]
+        study_id = next(s["study_id"] for s in studies if s["study_name"] == "ci")
+        assert page.endswith(f"/dashboard/studies/{study_id}")
+        detail = get_json(f"{base}/api/studies/{study_id}")
+    finally:
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=30) == 0  # SIGTERM stops it cleanly
+
+    stored = optuna.load_study(study_name="ci", storage=ci_study.storage_url).get_trials()
+    assert len(detail["trials"]) == len(stored) == 2
+    for trial in stored:
+        served = next(t for t in detail["trials"] if t["number"] == trial.number)
+        assert served["state"].upper() == "COMPLETE"
+        points = {p["step"]: p["value"] for p in served["intermediate_values"]}
+        assert points == pytest.approx(trial.intermediate_values)
+        assert len(points) == 4  # steps 0, 100, 200, 300
+    figures = {g["id"]: json.loads(g["graph_object"]) for g in detail["plotly_graph_objects"]}
+    assert {"sweeper-auc", "sweeper-curves-success_rate", "sweeper-curves-final_distance"} <= set(
+        figures
+    )
+    names = {trace.get("name", "") for trace in figures["sweeper-curves-success_rate"]["data"]}
+    assert {"pixel (n = 1)", "linear (n = 1)"} <= names
+    points, iqm = figures["sweeper-auc"]["data"]  # every trial's AUC; IQM with its CI
+    assert sorted(points["y"]) == pytest.approx(sorted(t.value for t in stored))
+    assert iqm["x"] == ["pixel", "linear"] and len(iqm["y"]) == 2
+    note = detail["note"]["body"]
+    assert "Method comparison" in note and "| pixel | 1 | 1 |" in note
+
+
+def test_dashboard_bad_input_exits_2(ci_study, tmp_path, capsys):
+    missing = f"sqlite:///{tmp_path / 'absent.db'}"
+    assert cli.main(["dashboard", str(ci_study.spec), "--storage", missing]) == 2
+    assert "no database file" in capsys.readouterr().err
+    other = tmp_path / "other.yaml"
+    other.write_text(ci_study.spec.read_text().replace("study: ci", "study: other"))
+    assert cli.main(["dashboard", str(other), "--storage", ci_study.storage_url]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("sweeper dashboard: study 'other' not found") and "\n" not in err
