@@ -197,10 +197,8 @@ class SAC:
         """One gradient step of critic, then (every ``actor_update_every``) actor and
         temperature, then the target soft update. Returns the detached losses."""
         cfg = self.cfg
-        b = {k: self.to_tensor(v) for k, v in batch.items()}
-        obs, next_obs, goal, action, reward = (
-            b["obs"], b["next_obs"], b["goal"], b["action"], b["reward"]
-        )  # fmt: skip
+        obs, next_obs, goal = (self.to_tensor(batch[k]) for k in ("obs", "next_obs", "goal"))
+        action, reward = self.to_tensor(batch["action"]), self.to_tensor(batch["reward"])
         n = len(obs)
 
         # 1. augment and encode: with gradient for (obs, goal), without for next_obs

@@ -7,13 +7,15 @@ extra; a URI scheme needs its fsspec backend installed (``pip install s3fs`` for
 
 Writes are atomic either way: a reader sees the old bytes or the new ones, never a torn
 file. Locally that is a temporary file in the same directory, fsync, rename; an object
-store commits an object only when its upload completes.
+store commits an object only when its upload completes. (URIs of file systems with real
+files, such as fsspec's ``local://`` or ``sftp://``, are written in place: not atomic.)
 """
 
 from __future__ import annotations
 
 import io
 import os
+import posixpath
 import re
 import tempfile
 from collections.abc import Callable
@@ -77,7 +79,11 @@ def write_atomic(location: str, write: Callable[[BinaryIO], object]) -> None:
         buffer = io.BytesIO()
         write(buffer)
         fs, path = _filesystem(location)
-        fs.pipe_file(path, buffer.getvalue())  # one object upload: visible only once complete
+        try:
+            fs.pipe_file(path, buffer.getvalue())  # one upload: visible only once complete
+        except FileNotFoundError:  # a file system with real directories (local://, sftp://)
+            fs.makedirs(posixpath.dirname(path), exist_ok=True)
+            fs.pipe_file(path, buffer.getvalue())
         return
     path = _local(location)
     path.parent.mkdir(parents=True, exist_ok=True)

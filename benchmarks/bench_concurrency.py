@@ -18,6 +18,10 @@ temporary directory. For a run with ``c`` trials at once it prints:
   part of the overhead, which a longer study amortises;
 - ``steady = 1 - S / (c * (W - startup - tail))``: the overhead while trials run (workers
   starting, dispatching, streaming and writing results, slots idle between trials);
+- ``gap``: per trial, its span in the study (``datetime_complete - datetime_start``) minus
+  its in-trial time, shown as the mean over the first ``c`` trials (each on a fresh worker
+  process that still imports torch and the agent: a one-off warm-up per worker) and the
+  mean over the later ones (the per-trial cost of dispatching and recording);
 - ``speed-up`` (for c = 2): W(c=1) / W(c=2).
 
 The target is an overhead under 5%. With few, short trials the fixed start-up dominates, so
@@ -75,6 +79,12 @@ def run_study(workdir: Path, trials: int, env_steps: int, concurrency: int) -> d
     in_trials = sum(float(t.user_attrs["seconds"]) for t in complete)
     first_start = min(t.datetime_start.timestamp() for t in complete)
     last_end = max(t.datetime_complete.timestamp() for t in complete)
+    by_start = sorted(complete, key=lambda t: t.datetime_start)
+    gaps = [
+        (t.datetime_complete - t.datetime_start).total_seconds() - float(t.user_attrs["seconds"])
+        for t in by_start
+    ]
+    later = gaps[concurrency:] or [float("nan")]
     return {
         "concurrency": concurrency,
         "wall": wall,
@@ -83,6 +93,8 @@ def run_study(workdir: Path, trials: int, env_steps: int, concurrency: int) -> d
         "startup": first_start - start_wall,
         "tail": start_wall + wall - last_end,
         "steady": 1.0 - in_trials / (concurrency * (last_end - first_start)),
+        "gap_first": sum(gaps[:concurrency]) / len(gaps[:concurrency]),
+        "gap_later": sum(later) / len(later),
     }
 
 
@@ -108,7 +120,8 @@ def main() -> None:
             print(
                 f"c={concurrency}: wall {row['wall']:7.1f} s | in trials {row['in_trials']:7.1f} s"
                 f" | overhead {100 * row['overhead']:5.1f}% | startup {row['startup']:5.1f} s"
-                f" | tail {row['tail']:4.1f} s | steady {100 * row['steady']:4.1f}%",
+                f" | tail {row['tail']:4.1f} s | steady {100 * row['steady']:4.1f}%"
+                f" | gap {row['gap_first']:4.1f} s first, {row['gap_later']:4.2f} s later",
                 flush=True,
             )
     print(f"load average at the end: {os.getloadavg()[0]:.1f}")

@@ -43,6 +43,8 @@ NOTE_END = "<!-- sweeper aggregate: end -->"
 #: bootstrap resamples for the IQM confidence interval
 RESAMPLES = 2000
 CONFIDENCE = 0.95
+#: trials per panel above which lines are drawn without antialiasing (25 % faster)
+DENSE = 200
 TRIAL_COLUMNS = (
     "trial",
     "key",
@@ -113,6 +115,25 @@ def run(args: argparse.Namespace) -> int:
 # ---- reading -------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class StudyInfo:
+    """What ``load_study_frame`` knows about the study besides its rows."""
+
+    name: str
+    attrs: dict[str, Any]  # the study user attrs (spec, plan, env, metric_names, ...)
+    metrics: tuple[str, ...]  # metric columns, in the study's metric_names order
+    searched: tuple[str, ...]  # params with more than one choice
+
+    def __deepcopy__(self, memo: dict) -> StudyInfo:
+        # pandas deep-copies frame.attrs after every operation; this is read-only
+        return self
+
+
+def study_info(frame: pd.DataFrame) -> StudyInfo:
+    """The ``StudyInfo`` of a frame from ``load_study_frame``."""
+    return frame.attrs["study"]
+
+
 def load_study_frame(storage_url: str, study_name: str) -> pd.DataFrame:
     """The study as a tidy frame: one row per (trial, evaluation step).
 
@@ -120,9 +141,8 @@ def load_study_frame(storage_url: str, study_name: str) -> pd.DataFrame:
     auc = the trial's value), ``step``, one column per reported metric (from the ``curve``
     user attr; a trial without one falls back to its intermediate values as
     ``success_rate``), then ``params_<name>`` per hyperparameter. A trial with no
-    evaluation yet has one row with ``step`` missing. ``frame.attrs`` holds ``study``
-    (name), ``study_attrs`` (the study user attrs), ``metrics`` (metric columns, in the
-    study's ``metric_names`` order) and ``searched`` (params with more than one choice).
+    evaluation yet has one row with ``step`` missing. ``study_info(frame).name`` is the
+    ``StudyInfo`` (``study_info(frame)``).
 
     The study is read with one query per Optuna table, not per trial (Optuna's
     ``get_trials`` takes ~15 s for 2,000 trials x 50 points). Reading a live study is safe:
@@ -239,8 +259,9 @@ def _build_frame(study_name, trials, values, user_attrs, params, intermediate, s
                 )
             metric_names[name] = None
             columns[name] = np.asarray(column, dtype=np.float64)  # null (NaN) -> nan
-        # a trial without evaluations keeps one row, with step -1 (missing)
-        parsed.append((steps if steps.size else np.array([-1]), columns))
+        if not steps.size:  # a trial without evaluations keeps one row, step -1 (missing)
+            steps, columns = np.array([-1]), {}
+        parsed.append((steps, columns))
         rows.append(row)
     if not rows:
         raise ValueError(f"study {study_name!r} has no trials yet: nothing to aggregate")
@@ -268,9 +289,7 @@ def _build_frame(study_name, trials, values, user_attrs, params, intermediate, s
     # A key's current trial is its highest-numbered one (sweeper.storage.current_trials).
     latest = frame.groupby("key")["trial"].transform("max")
     frame["counted"] = frame["key"].notna() & (frame["trial"] == latest)
-    frame.attrs.update(
-        study=study_name, study_attrs=study, metrics=metrics, searched=sorted(searched)
-    )
+    frame.attrs["study"] = StudyInfo(study_name, study, tuple(metrics), tuple(sorted(searched)))
     return frame
 
 
@@ -293,7 +312,7 @@ def scored(frame: pd.DataFrame) -> pd.DataFrame:
 
 def methods_of(frame: pd.DataFrame) -> list[str]:
     """Methods in the spec's order (study attr ``spec``), then any others seen."""
-    study = frame.attrs.get("study_attrs", {})
+    study = study_info(frame).attrs
     declared = list((study.get("spec") or {}).get("methods", {}))
     declared += [k.split("/")[0] for k in study.get("plan", [])]
     return list(dict.fromkeys(declared + frame["method"].dropna().unique().tolist()))
@@ -307,7 +326,7 @@ def method_curves(frame: pd.DataFrame) -> pd.DataFrame:
     """
 
     rows = scored(frame).dropna(subset=["step"])
-    metrics = frame.attrs["metrics"]
+    metrics = study_info(frame).metrics
     long = rows.melt(id_vars=["method", "step"], value_vars=metrics, var_name="metric")
     stats = long.groupby(["method", "metric", "step"], sort=False)["value"].agg(
         ["mean", "std", "count"]
@@ -337,7 +356,7 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
 
     trials = trial_rows(frame)
     current = trials[trials["counted"]]
-    planned = frame.attrs.get("study_attrs", {}).get("plan") or current["key"].tolist()
+    planned = study_info(frame).attrs.get("plan") or current["key"].tolist()
     done = trial_rows(scored(frame))
     samples = {m: g["auc"].to_numpy() for m, g in done.groupby("method")}
     intervals = stratified_bootstrap_ci(
@@ -364,7 +383,7 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
         row.update(dict.fromkeys(AUC_COLUMNS), n=values.size)
         if values.size:
             best = done[done["method"] == method].sort_values("auc", ascending=False).iloc[0]
-            params = {k: best[f"params_{k}"] for k in frame.attrs.get("searched", [])}
+            params = {k: best[f"params_{k}"] for k in study_info(frame).searched}
             row.update(
                 mean=values.mean(),
                 std=values.std(ddof=1) if values.size > 1 else math.nan,
@@ -433,6 +452,7 @@ def aggregate(
     """Read the study, compute curves and statistics, write CSV, PNG and the report to
     ``out``; with ``dashboard``, also save the comparison into the study."""
     import optuna
+    from sqlalchemy.exc import SQLAlchemyError
 
     from sweeper.storage import StudyStore, open_storage
 
@@ -444,7 +464,7 @@ def aggregate(
         f"in {time.perf_counter() - start:.1f} s"
     )
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    storage = open_storage(storage_url)
+    storage = open_storage(storage_url, create=False)
     try:
         store = StudyStore.find(storage, study_name)
         alive = store is not None and store.driver_alive()
@@ -460,8 +480,12 @@ def aggregate(
         report = out / "report.md"
         report.write_text(_report(frame, table, improvement, alive), encoding="utf-8")
         if dashboard and store is not None:
-            _save_to_dashboard(storage, store.study_id, frame, curves, table, improvement)
-            say("saved the comparison figures and note into the study (optuna-dashboard)")
+            try:
+                _save_to_dashboard(storage, store.study_id, frame, curves, table, improvement)
+                say("saved the comparison figures and note into the study (optuna-dashboard)")
+            except (SQLAlchemyError, optuna.exceptions.StorageInternalError) as e:
+                # e.g. a read-only database: the files are written, say so and go on
+                say(f"warning: could not save the comparison into the study: {e}")
     finally:
         storage.remove_session()
         storage.engine.dispose()
@@ -496,21 +520,31 @@ def _draw_figures(
 
 
 def _env(frame: pd.DataFrame) -> str | None:
-    return frame.attrs.get("study_attrs", {}).get("env")
+    return study_info(frame).attrs.get("env")
 
 
-def _panels(count: int, width: float, height: float, **kwargs: Any):
-    """A constrained figure with ``count`` panels, at most 3 a row (extra ones hidden)."""
+def _panels(title: str, rows: int, columns: int, *, gap: float, right: float = 0.3, **kwargs: Any):
+    """A figure of ``rows x columns`` panels of 3.3 x 2.4 inches, ``gap`` inches apart
+    horizontally, ``right`` inches free on the right. Fixed margins, no layout engine:
+    constrained layout takes seconds on a big grid."""
     from matplotlib.figure import Figure
 
-    columns = min(count, 3)
-    rows = math.ceil(count / columns)
-    figure = Figure(figsize=(width * columns + 1.2, height * rows + 0.8), layout="constrained")
-    grid = figure.subplots(rows, columns, squeeze=False, sharex=True, **kwargs)
+    panel_w, panel_h, left, bottom, top, gap_h = 3.3, 2.4, 1.0, 1.05, 0.75, 0.4
+    width = left + columns * panel_w + (columns - 1) * gap + right
+    height = bottom + rows * panel_h + (rows - 1) * gap_h + top
+    figure = Figure(figsize=(width, height))
+    margins = {
+        "left": left / width,
+        "right": 1 - right / width,
+        "bottom": bottom / height,
+        "top": 1 - top / height,
+        "wspace": gap / panel_w,
+        "hspace": gap_h / panel_h,
+    }
+    grid = figure.subplots(rows, columns, squeeze=False, sharex=True, gridspec_kw=margins, **kwargs)
     for axes in grid[-1]:
         axes.set_xlabel("environment steps")
-    for axes in grid.flat[count:]:
-        axes.set_visible(False)
+    figure.suptitle(title, y=1 - 0.12 / height, fontsize="large")
     return figure, grid
 
 
@@ -523,8 +557,12 @@ def _style_axes(axes, metric: str, env: str | None) -> None:
 
 def _draw_mean_curves(frame, curves, path: Path) -> Path:
     """One panel per metric; per method the mean over done trials with a ± std band."""
-    metrics = frame.attrs["metrics"]
-    figure, grid = _panels(len(metrics), 4.4, 3.4)
+    metrics = study_info(frame).metrics
+    columns = min(len(metrics), 3)
+    title = f"{study_info(frame).name}: learning curves, mean ± std over done trials"
+    figure, grid = _panels(title, math.ceil(len(metrics) / columns), columns, gap=1.0)
+    for axes in grid.flat[len(metrics) :]:
+        axes.set_visible(False)
     for axes, metric in zip(grid.flat, metrics, strict=False):
         for index, method in enumerate(methods_of(frame)):
             part = curves[(curves["method"] == method) & (curves["metric"] == metric)]
@@ -544,29 +582,26 @@ def _draw_mean_curves(frame, curves, path: Path) -> Path:
             handles,
             labels,
             title="method (done trials)",
-            loc="outside lower center",
+            loc="lower center",
             ncols=min(len(handles), 4),
         )
     else:
         grid[0, 0].text(0.5, 0.5, "no done trial yet", ha="center", transform=grid[0, 0].transAxes)
-    figure.suptitle(f"{frame.attrs['study']}: learning curves, mean ± std over done trials")
     figure.savefig(path, dpi=110)
     return path
 
 
 def _draw_trial_curves(frame, path: Path) -> Path:
     """A row per metric, a column per method, a line per trial: done trials coloured by
-    their AUC, running ones grey dashed, failed ones red dotted."""
+    their AUC, unfinished (running or interrupted) ones grey dashed, failed ones red dotted."""
     import matplotlib as mpl
     import numpy as np
     from matplotlib.collections import LineCollection
-    from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
 
-    methods, metrics = methods_of(frame), frame.attrs["metrics"]
-    size = (3.3 * len(methods) + 1.4, 2.5 * len(metrics) + 1.0)
-    figure = Figure(figsize=size, layout="constrained")
-    grid = figure.subplots(len(metrics), len(methods), squeeze=False, sharex=True, sharey="row")
+    methods, metrics = methods_of(frame), study_info(frame).metrics
+    title = f"{study_info(frame).name}: every trial's curves, coloured by its AUC"
+    figure, grid = _panels(title, len(metrics), len(methods), gap=0.25, right=1.4, sharey="row")
     current = frame[frame["counted"]].dropna(subset=["step"]).sort_values(["trial", "step"])
     aucs = current.loc[current["state"] == "COMPLETE", "auc"].dropna()
     low, high = (aucs.min(), aucs.max()) if len(aucs) else (0.0, 1.0)
@@ -574,14 +609,18 @@ def _draw_trial_curves(frame, path: Path) -> Path:
         low, high = max(low - 0.05, 0.0), min(high + 0.05, 1.0)
     norm, cmap = mpl.colors.Normalize(low, high), mpl.colormaps["viridis"]
     # state -> (colour, line style, legend label); done trials take their AUC's colour
-    looks = {"RUNNING": ("0.5", "dashed", "running"), "FAIL": ("tab:red", "dotted", "failed")}
+    looks = {"RUNNING": ("0.5", "dashed", "unfinished"), "FAIL": ("tab:red", "dotted", "failed")}
     shown = set()
     for column, method in enumerate(methods):
         part = current[current["method"] == method]
+        grid[0, column].set_title(f"{method}: no trial yet")
+        if part.empty:
+            continue
         # each trial's rows are contiguous: split the columns at the trial boundaries
         starts = np.flatnonzero(np.diff(part["trial"].to_numpy(), prepend=-1))
-        states = part["state"].to_numpy()[starts]
-        states = np.where(np.isin(states, ["COMPLETE", "FAIL"]), states, "RUNNING")
+        states, outcomes = part["state"].to_numpy()[starts], part["outcome"].to_numpy()[starts]
+        failed = (states == "FAIL") & (outcomes != "interrupted")  # interrupted: re-run later
+        states = np.where(states == "COMPLETE", states, np.where(failed, "FAIL", "RUNNING"))
         colours = [
             cmap(norm(a)) if s == "COMPLETE" else looks[s][0]
             for s, a in zip(states, part["auc"].to_numpy()[starts], strict=True)
@@ -593,26 +632,32 @@ def _draw_trial_curves(frame, path: Path) -> Path:
             points = np.column_stack([steps, part[metric].to_numpy(dtype=float)])
             lines = [p[np.isfinite(p[:, 1])] for p in np.split(points, starts[1:])]
             axes = grid[row, column]
-            axes.add_collection(LineCollection(lines, colors=colours, linestyles=styles, lw=1))
+            collection = LineCollection(
+                lines,
+                colors=colours,
+                linestyles=styles,
+                lw=1,
+                antialiaseds=len(lines) <= DENSE,  # a dense cloud looks the same without
+            )
+            axes.add_collection(collection)
             axes.autoscale()
             _style_axes(axes, metric, _env(frame))
             if column:
                 axes.set_ylabel("")
         names, counts = np.unique(states, return_counts=True)
-        words = {"COMPLETE": "done", "FAIL": "failed", "RUNNING": "running"}
+        words = {"COMPLETE": "done", "FAIL": "failed", "RUNNING": "unfinished"}
         summary = ", ".join(f"{n} {words[s]}" for s, n in zip(names, counts, strict=True))
-        grid[0, column].set_title(f"{method}: {summary or 'no trial yet'}")
-    for axes in grid[-1]:
-        axes.set_xlabel("environment steps")
+        grid[0, column].set_title(f"{method}: {summary}")
     if shown:
         handles = [
             Line2D([], [], color=looks[s][0], linestyle=looks[s][1], label=looks[s][2])
             for s in sorted(shown, reverse=True)
         ]
-        figure.legend(handles=handles, loc="outside lower center", ncols=2)
-    bar = figure.colorbar(mpl.cm.ScalarMappable(norm, cmap), ax=grid, shrink=0.6)
+        figure.legend(handles=handles, loc="lower center", ncols=2)
+    inch = 1 / figure.get_figwidth()  # in figure widths
+    bar_axes = figure.add_axes((grid[0, -1].get_position().x1 + 0.3 * inch, 0.2, 0.15 * inch, 0.6))
+    bar = figure.colorbar(mpl.cm.ScalarMappable(norm, cmap), cax=bar_axes)
     bar.set_label("trial AUC (normalised area under success rate)")
-    figure.suptitle(f"{frame.attrs['study']}: every trial's curves, coloured by its AUC")
     figure.savefig(path, dpi=100)
     return path
 
@@ -628,21 +673,15 @@ def _draw_auc(frame, table: pd.DataFrame, path: Path) -> Path:
     for x, row in enumerate(table.itertuples()):
         values = done.loc[done["method"] == row.method, "auc"].to_numpy()
         jitter = rng.uniform(-0.15, 0.15, values.size)
-        axes.scatter(x + jitter, values, s=14, color="0.55", label="trial AUC" if x == 0 else None)
+        axes.scatter(x + jitter, values, s=14, color="0.55", label="trial AUC")
         if row.n:
-            axes.errorbar(
-                x,
-                row.iqm,
-                yerr=[[row.iqm - row.iqm_low], [row.iqm_high - row.iqm]],
-                fmt="D",
-                color="C3",
-                capsize=6,
-                markersize=7,
-                label=f"IQM with {CONFIDENCE:.0%} bootstrap CI" if x == 0 else None,
-            )
-            axes.plot(
-                x, row.mean, "_", color="C0", markersize=18, mew=2, label="mean" if x == 0 else None
-            )
+            interval = [[row.iqm - row.iqm_low], [row.iqm_high - row.iqm]]
+            label = f"IQM with {CONFIDENCE:.0%} bootstrap CI"
+            axes.errorbar(x, row.iqm, yerr=interval, fmt="D", color="C3", capsize=6, label=label)
+            axes.plot(x, row.mean, "_", color="C0", markersize=18, mew=2, label="mean")
+    handles, labels = axes.get_legend_handles_labels()
+    unique = dict(zip(labels, handles, strict=True))  # one legend entry per kind
+    axes.legend(unique.values(), unique.keys(), loc="best", fontsize="small")
     axes.set_xticks(
         range(len(table)),
         [f"{m}\n(n = {n})" for m, n in zip(table["method"], table["n"], strict=True)],
@@ -650,9 +689,8 @@ def _draw_auc(frame, table: pd.DataFrame, path: Path) -> Path:
     axes.set_xlim(-0.6, len(table) - 0.4)
     axes.set_xlabel("method (done trials)")
     axes.set_ylabel("AUC of success rate (normalised, 0..1)")
-    axes.set_title(f"{frame.attrs['study']}: AUC per method")
+    axes.set_title(f"{study_info(frame).name}: AUC per method")
     axes.grid(axis="y", alpha=0.3)
-    axes.legend(loc="best", fontsize="small")
     figure.savefig(path, dpi=110)
     return path
 
@@ -723,10 +761,10 @@ both are done, the fraction where A's AUC is higher, ties counting one half."""
 
 
 def _report(frame, table, improvement, driver_alive: bool) -> str:
-    study = frame.attrs["study_attrs"]
+    study = study_info(frame).attrs
     trials = trial_rows(frame)
     lines = [
-        f"# Study `{frame.attrs['study']}`: method comparison",
+        f"# Study `{study_info(frame).name}`: method comparison",
         "",
         f"Env `{study.get('env', 'unknown')}`, code revision `{study.get('revision', 'unknown')}`, "
         f"{trials['trial'].nunique()} Optuna trials for {trials['key'].nunique()} plan keys; "
@@ -748,7 +786,7 @@ def _report(frame, table, improvement, driver_alive: bool) -> str:
         "",
         "![mean and std of every metric per method](curves.png)",
         "",
-        "Every trial (grey dashed: running; red dotted: failed):",
+        "Every trial (grey dashed: unfinished; red dotted: failed):",
         "",
         "![every trial's curves coloured by AUC](trials.png)",
         "",
@@ -765,9 +803,9 @@ def _save_to_dashboard(storage, study_id: int, frame, curves, table, improvement
     import plotly.graph_objects as go
     from optuna_dashboard import get_note, save_note, save_plotly_graph_object
 
-    study = optuna.load_study(study_name=frame.attrs["study"], storage=storage)
+    study = optuna.load_study(study_name=study_info(frame).name, storage=storage)
     colours = [f"rgba{(*rgb, 1)}" for rgb in _PALETTE]
-    for metric in frame.attrs["metrics"]:
+    for metric in study_info(frame).metrics:
         figure = go.Figure()
         for index, method in enumerate(methods_of(frame)):
             part = curves[(curves["method"] == method) & (curves["metric"] == metric)]

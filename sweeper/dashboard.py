@@ -82,6 +82,8 @@ def serve(
 
     import optuna
     import optuna_dashboard
+    from optuna.exceptions import StorageInternalError
+    from sqlalchemy.exc import SQLAlchemyError
 
     from sweeper.storage import StudyStore, open_storage, redact, resolve_url, sqlite_path
 
@@ -89,8 +91,12 @@ def serve(
     if path is not None and not path.is_file():
         raise ValueError(f"storage: no database file at {path}: launch the study first")
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    storage = open_storage(storage_url)
-    store = StudyStore.find(storage, study_name)
+    try:
+        storage = open_storage(storage_url, create=False)
+        store = StudyStore.find(storage, study_name)
+    except (SQLAlchemyError, StorageInternalError) as e:  # no Optuna tables, no server
+        reason = str(getattr(e, "orig", None) or e).strip().splitlines()[0]
+        raise ValueError(f"storage: cannot read {redact(storage_url)}: {reason}") from None
     if store is None:
         raise ValueError(f"study {study_name!r} not found in {redact(storage_url)}")
 
@@ -107,7 +113,10 @@ def serve(
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _raise_interrupt) if main_thread else None
     try:
-        (ready or (lambda u: print(f"optuna-dashboard: {u}  (Ctrl-C stops it)", flush=True)))(url)
+        if ready is None:
+            print(f"optuna-dashboard: {url}  (Ctrl-C stops it)", flush=True)
+        else:
+            ready(url)
         server.serve_forever()
     except KeyboardInterrupt:
         pass

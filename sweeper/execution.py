@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import re
+import socket
 import threading
 import time
 import traceback
@@ -38,8 +39,21 @@ def start_ray(address: str | None, num_cpus: int | None = None) -> bool:
     if address is None:
         ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, **common)
     else:
+        _check_reachable(address)
         ray.init(address=address, **common)
     return True
+
+
+def _check_reachable(address: str, timeout: float = 10.0) -> None:
+    """Raise ConnectionError if ``host:port`` does not accept connections: ``ray.init``
+    would retry for minutes. Other forms ("auto") are left to Ray."""
+    host, _, port = address.split("://")[-1].rpartition(":")
+    if not host or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as e:
+        raise ConnectionError(f"nothing answers at {host}:{port} ({e})") from None
 
 
 @ray.remote

@@ -277,6 +277,7 @@ def _drive(
     stream: TextIO,
 ) -> int:
     """The driver loop: dispatch keys to workers, write what comes back."""
+    from agent.storage_io import is_uri
     from sweeper.execution import Errored, Finished, Lost, Reported, Started, WorkerPool
 
     execution = spec.execution
@@ -297,7 +298,8 @@ def _drive(
             job.attempts += 1
             store.set_attrs(job.trial_id, {"attempts": job.attempts})
             config = job.entry.trial_config
-            if config.checkpoint_dir is not None:  # workers may run in another directory
+            local = config.checkpoint_dir is not None and not is_uri(config.checkpoint_dir)
+            if local:  # workers may run in another directory; a URI is the same everywhere
                 config = dataclasses.replace(
                     config, checkpoint_dir=str(Path(config.checkpoint_dir).absolute())
                 )

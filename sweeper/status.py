@@ -46,6 +46,7 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
 def status_lines(study: str, url: str, keys: list[str], plan_hash: str) -> list[str]:
     """The ledger table and notes of ``study`` in ``url`` for the planned ``keys``."""
     import optuna
+    from sqlalchemy.exc import SQLAlchemyError
 
     from sweeper.storage import (
         StorageError,
@@ -53,6 +54,7 @@ def status_lines(study: str, url: str, keys: list[str], plan_hash: str) -> list[
         current_trials,
         ledger,
         open_storage,
+        redact,
         resolve_url,
         sqlite_path,
     )
@@ -61,7 +63,11 @@ def status_lines(study: str, url: str, keys: list[str], plan_hash: str) -> list[
     if path is not None and not path.exists():
         return [*_table(ledger(keys, [], False)), "not launched yet (no database file)"]
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    storage = open_storage(url, create=False)
+    try:
+        storage = open_storage(url, create=False)
+    except (SQLAlchemyError, optuna.exceptions.StorageInternalError) as e:
+        reason = " ".join(str(getattr(e, "orig", e)).split())[:300]
+        raise StorageError(f"storage: cannot read {redact(url)}: {reason}") from None
     try:
         store = StudyStore.find(storage, study)
         if store is None:

@@ -135,9 +135,12 @@ def open_storage(url: str, create: bool = True) -> optuna.storages.RDBStorage:
     """An Optuna RDB storage for ``url``.
 
     ``create``: create the tables (and the SQLite file) if needed, as the driver does;
-    readers pass False, since two processes creating tables at once collide.
+    readers pass False. Optuna's first open also inserts version rows, so a reader
+    opening a database while it is being created can collide with the driver: the driver
+    retries, a reader gets the SQLAlchemy error.
     """
     import optuna
+    from sqlalchemy.exc import SQLAlchemyError
 
     resolved = resolve_url(url)
     engine_kwargs: dict[str, Any] = {}
@@ -153,9 +156,18 @@ def open_storage(url: str, create: bool = True) -> optuna.storages.RDBStorage:
         engine_kwargs["connect_args"] = {"timeout": SQLITE_TIMEOUT}
     else:
         engine_kwargs["pool_pre_ping"] = True
-    return optuna.storages.RDBStorage(
-        resolved, engine_kwargs=engine_kwargs, skip_table_creation=not create
-    )
+
+    def build() -> optuna.storages.RDBStorage:
+        return optuna.storages.RDBStorage(
+            resolved, engine_kwargs=engine_kwargs, skip_table_creation=not create
+        )
+
+    for _ in range(4 if create else 0):
+        try:
+            return build()
+        except (SQLAlchemyError, optuna.exceptions.StorageInternalError):
+            time.sleep(0.5)
+    return build()
 
 
 def code_revision() -> str:
@@ -257,14 +269,10 @@ class StudyStore:
     @classmethod
     def find(cls, storage: optuna.storages.RDBStorage, name: str) -> StudyStore | None:
         """The study called ``name``, or None if there is none."""
-        from optuna.exceptions import StorageInternalError
-
         try:
             return cls(storage, storage.get_study_id_from_name(name))
         except KeyError:
             return None
-        except StorageInternalError:  # pragma: no cover - a locked or broken database
-            raise
 
     @classmethod
     def open_or_create(
@@ -318,7 +326,7 @@ class StudyStore:
     # -- driver lock ------------------------------------------------------------------
 
     def driver_alive(self, now: float | None = None) -> bool:
-        """Whether another live driver holds this study (heartbeat recent, same-host pid alive)."""
+        """Whether a live driver holds this study (heartbeat recent, same-host pid alive)."""
         driver = self.attrs.get("driver")
         if not driver:
             return False

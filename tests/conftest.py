@@ -42,14 +42,16 @@ def ci_study(tmp_path_factory: pytest.TempPathFactory) -> CIStudy:
 
 @pytest.fixture(scope="session")
 def ci_aggregate(ci_study: CIStudy) -> Path:
-    """``sweeper aggregate studies/ci.yaml`` run once (from the CI study's working directory,
-    so to its default output folder, which is returned); it also saves the comparison
+    """``sweeper aggregate studies/ci.yaml`` run once, from the CI study's working directory
+    (so to its default output folder, which is returned); it also saves the comparison
     figures and note into the study for optuna-dashboard."""
-    command = [sys.executable, "-m", "sweeper.cli", "aggregate", str(ci_study.spec)]
-    command += ["--storage", ci_study.storage_url]
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    done = subprocess.run(
-        command, cwd=ci_study.workdir, env=env, capture_output=True, text=True, timeout=600
-    )
-    assert done.returncode == 0, f"sweeper aggregate failed:\n{done.stderr[-4000:]}"
+    from sweeper import cli
+
+    here = os.getcwd()
+    os.chdir(ci_study.workdir)
+    try:
+        code = cli.main(["aggregate", str(ci_study.spec), "--storage", ci_study.storage_url])
+    finally:
+        os.chdir(here)
+    assert code == 0, "sweeper aggregate studies/ci.yaml failed"
     return ci_study.workdir / "runs" / "ci" / "aggregate"

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import math
 from pathlib import Path
 
@@ -12,7 +11,7 @@ import torch
 
 import agent
 from agent.config import SACConfig, TrialConfig
-from agent.envs import ENV_ENTRY_POINTS, ENV_NAMES
+from agent.envs import ENV_NAMES
 from agent.metrics import normalized_auc
 
 TINY_SAC = SACConfig(hidden_sizes=(16, 16), batch_size=16, updates_per_step=1, feature_dim=8,
@@ -148,11 +147,7 @@ def test_bad_names_are_clear_errors() -> None:
         agent.train(tiny(env="point_rech"))
 
 
-def _env_exists(name: str) -> bool:
-    return importlib.util.find_spec(ENV_ENTRY_POINTS[name].split(":")[0]) is not None
-
-
-@pytest.mark.parametrize("env", [e for e in ENV_NAMES if _env_exists(e)])
+@pytest.mark.parametrize("env", ENV_NAMES)
 @pytest.mark.parametrize("method", ["pixel", "state"])
 def test_every_env_end_to_end(env: str, method: str) -> None:
     config = tiny(
@@ -168,6 +163,9 @@ def test_every_env_end_to_end(env: str, method: str) -> None:
     assert result.steps == (0, 50) and result.outcome == "completed"
     assert all(len(v) == 2 for v in result.metrics.values())
     assert "success_rate" in result.metrics
+    if env == "sawyer_door":  # both door metrics, as docs/architecture.md names them
+        door = {"angle_success_rate", "hand_success_rate", "final_angle_distance"}
+        assert door | {"final_hand_distance"} <= set(result.metrics)
 
 
 @pytest.mark.parametrize("method", ["conv", "vae"])

@@ -12,18 +12,20 @@ import pandas as pd
 import pytest
 from optuna.trial import TrialState
 from optuna_dashboard import get_note, save_note
-from synthetic_study import write_synthetic_study
+from synthetic_study import Special, write_synthetic_study
 
 from agent.metrics import normalized_auc
 from sweeper import cli
 from sweeper.aggregate import (
     NOTE_BEGIN,
     NOTE_END,
+    aggregate,
     auc_table,
     improvement_table,
     load_study_frame,
     method_curves,
     replace_note_section,
+    study_info,
 )
 from sweeper.stats import iqm
 from sweeper.storage import current_trials, ledger
@@ -64,7 +66,7 @@ def test_frame_matches_the_storage(synthetic):
     trials = trials_of(url, "syn")
     current = {t.number for t in current_trials(trials).values()}
     assert frame["trial"].nunique() == len(trials) == 2 * 4 * 3 + 1  # + the reaped attempt
-    assert frame.attrs["metrics"][0] == "success_rate" and len(frame.attrs["metrics"]) == 5
+    assert study_info(frame).metrics[0] == "success_rate" and len(study_info(frame).metrics) == 5
     for trial in trials:
         rows = frame[frame["trial"] == trial.number]
         first = rows.iloc[0]
@@ -80,7 +82,7 @@ def test_frame_matches_the_storage(synthetic):
             assert first[f"params_{name}"] == value
         curve = trial.user_attrs["curve"]
         assert rows["step"].tolist() == curve["step"]
-        for metric in frame.attrs["metrics"]:
+        for metric in study_info(frame).metrics:
             expected = np.array(curve[metric], dtype=float)
             np.testing.assert_allclose(rows[metric].to_numpy(), expected, equal_nan=True)
         assert dict(zip(rows["step"], rows["success_rate"], strict=True)) == pytest.approx(
@@ -93,7 +95,7 @@ def test_auc_table_matches_the_storage(synthetic):
     frame = load_study_frame(url, "syn")
     table = auc_table(frame, driver_alive=False).set_index("method")
     trials = trials_of(url, "syn")
-    plan = frame.attrs["study_attrs"]["plan"]
+    plan = study_info(frame).attrs["plan"]
     counts = ledger(plan, trials, driver_alive=False)  # sweeper status's ledger
     done = [t for t in current_trials(trials).values() if t.state == TrialState.COMPLETE]
     assert list(table.index) == list(METHODS)
@@ -167,6 +169,7 @@ def test_written_files_and_dashboard_note(synthetic):
     np.testing.assert_allclose(frame["auc"], loaded["auc"], equal_nan=True)
     for name in FIGURES:
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    assert sorted(p.name for p in out.iterdir()) == sorted([*CSVS, *FIGURES, "report.md"])
     report = (out / "report.md").read_text()
     assert "**Partial study**" in report and "| vae | 8 | 7 | 1 |" in report
     for link in [part.split(")")[0] for part in report.split("](")[1:]]:
@@ -231,3 +234,20 @@ def test_ci_study_aggregates_from_its_storage(ci_study, ci_aggregate):
         assert (out / name).stat().st_size > 10_000, name
     report = (out / "report.md").read_text()
     assert "# Study `ci`" in report and "![AUC per method](auc.png)" in report
+
+
+def test_a_study_with_nothing_done_yet_aggregates(tmp_path):
+    """Early in a sweep: one trial running with two evaluations, one waiting, one method
+    without any trial yet."""
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    special = Special(running="pixel/0/0", failed="pixel/1/0")
+    study = write_synthetic_study(url, "early", methods=("pixel",), configs=2, special=special)
+    study.set_user_attr("plan", ["pixel/0/0", "pixel/1/0", "pixel/2/0", "vae/0/0"])
+    study.enqueue_trial({}, user_attrs={"key": "pixel/2/0", "method": "pixel"})
+    result = aggregate(url, "early", tmp_path / "out", dashboard=False, progress=lambda m: None)
+    table = result.table.set_index("method")
+    assert table.loc["pixel", ["planned", "done", "failed", "left"]].tolist() == [3, 0, 1, 2]
+    assert table.loc["vae", ["planned", "done", "left", "n"]].tolist() == [1, 0, 1, 0]
+    assert result.curves.empty and result.improvement.empty
+    assert "**Partial study**" in result.report.read_text()
+    assert all(path.is_file() for path in result.files)

@@ -57,7 +57,7 @@ def trials_of(url: str, name: str) -> list[optuna.trial.FrozenTrial]:
             return optuna.load_study(study_name=name, storage=storage).get_trials()
         finally:
             storage.engine.dispose()
-    except (KeyError, sqlalchemy.exc.OperationalError, optuna.exceptions.StorageInternalError):
+    except (KeyError, sqlalchemy.exc.SQLAlchemyError, optuna.exceptions.StorageInternalError):
         return []
 
 

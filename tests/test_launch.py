@@ -272,3 +272,18 @@ def test_progress_display():
     assert plain.getvalue().splitlines()[1] == "pixel/0/0 completed"
     with pytest.raises(ValueError, match="state must be one of"):
         progress.set_state("pixel/0/0", "done")
+
+
+def test_unreachable_ray_address_exits_2_and_writes_nothing(tmp_path):
+    import subprocess
+
+    done = subprocess.run(
+        [sys.executable, "-m", "sweeper.cli", "launch", str(CI_SPEC), "--address", "127.0.0.1:1"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2
+    assert "sweeper launch: execution.address: cannot reach" in done.stderr
+    assert list(tmp_path.iterdir()) == []

@@ -127,6 +127,9 @@ def test_method_spaces_merge_defaults_and_encoder_options():
 
 
 def test_vgg_weights_from_env_var_or_spec(tmp_path, monkeypatch, vgg_weights):
+    from encoders.vgg import WEIGHTS_ENV_VAR
+
+    assert VGG_ENV == WEIGHTS_ENV_VAR  # the sweeper reads the variable the encoder reads
     data = copy.deepcopy(BASE)
     data["methods"] = {"vgg": {}}
     assert parse_spec(data).methods["vgg"]["weights_path"] == (str(vgg_weights),)

@@ -38,6 +38,13 @@ def test_uri_round_trip_in_fsspec_memory_store():
     assert read_bytes(target) == b"\x00\x02state"
 
 
+def test_uri_of_a_file_system_with_directories_creates_them(tmp_path):
+    target = f"local://{tmp_path}/new/dirs/checkpoint.pt"  # fsspec's local file system
+    write_bytes_atomic(target, b"state")
+    assert (tmp_path / "new" / "dirs" / "checkpoint.pt").read_bytes() == b"state"
+    assert read_bytes(target) == b"state"
+
+
 def test_uri_detection_and_join():
     assert is_uri("s3://bucket/x") and is_uri("gs://b") and is_uri("memory://x")
     assert not is_uri("/data/checkpoints") and not is_uri("runs/x")
