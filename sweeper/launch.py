@@ -1,10 +1,10 @@
 """``sweeper launch SPEC``: run a study, or resume it, on Ray; the driver is the only writer.
 
-The driver validates everything first (spec, env and encoder options, storage URL), so a
-bad input exits with code 2 and writes nothing. Then it creates or loads the study, gives
-every plan key that is not done a WAITING trial (``StudyStore.sync``), and hands the keys
-to a pool of Ray worker actors, one trial per actor at a time. Reports stream back as
-intermediate values; a finished trial is told its AUC.
+The driver validates everything first (spec, env and encoder options, storage URL, Ray
+address), so a bad input exits with code 2 and writes nothing. Then it creates or loads the
+study, gives every plan key that is not done a WAITING trial (``StudyStore.sync``), and
+hands the keys to a pool of Ray worker actors, one trial per actor at a time. Reports
+stream back as intermediate values; a finished trial is told its AUC.
 
 Failures: a worker that dies is replaced and the trial re-run from its checkpoint, with
 the same parameters and seed, in the same Optuna trial, up to ``execution.retries`` times.
@@ -12,7 +12,8 @@ An exception inside a trial is not retried (a seeded trial fails the same way ag
 trial is FAIL with ``error`` and ``traceback``, and the next ``sweeper launch`` re-runs it.
 Ctrl-C (or SIGTERM) stops the workers and marks the trials in flight ``interrupted``; a
 relaunch resumes them from their checkpoints. Exit codes: 0 all done, 1 some trials
-failed or another driver runs the study, 2 bad input, 130 interrupted.
+failed or another driver runs the study, 2 bad input, 130 interrupted. What trials print
+goes to Ray's worker logs (``/tmp/ray/session_latest/logs``), not to the progress display.
 """
 
 from __future__ import annotations
@@ -127,18 +128,11 @@ def study_attrs(spec: StudySpec, plan: Plan) -> dict[str, Any]:
 def report_metric_names(env: str) -> tuple[str, ...]:
     """The metric keys a trial on ``env`` reports (docs/architecture.md, "One trial")."""
     from agent.envs import ENV_ENTRY_POINTS
+    from agent.metrics import metric_key
 
     module_name, class_name = ENV_ENTRY_POINTS[env].split(":")
     env_class = getattr(__import__(module_name, fromlist=[class_name]), class_name)
-    names = []
-    for name in env_class.metric_names:
-        if name == "is_success":
-            names.insert(0, "success_rate")
-        elif name.endswith("_success"):
-            names.append(f"{name}_rate")
-        else:
-            names.append(f"final_{name}")
-    return tuple(names)
+    return tuple(metric_key(name) for name in env_class.metric_names)
 
 
 @dataclass

@@ -171,10 +171,15 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, ray_
     def done():
         return [t for t in trials_of(url, "driver") if t.state == TrialState.COMPLETE]
 
-    # 1. SIGKILL the driver after a trial ends (Ray then kills its actors).
+    def done_and_running():
+        trials = trials_of(url, "driver")
+        running = [t for t in trials if t.state == TrialState.RUNNING and "worker" in t.user_attrs]
+        return running and any(t.state == TrialState.COMPLETE for t in trials)
+
+    # 1. SIGKILL the driver after a trial ends, while others run (Ray then kills its actors).
     first = start_driver(spec, ray_address, log)
     try:
-        wait_for(done, 240, "a first complete trial")
+        wait_for(done_and_running, 240, "a complete trial and a running one")
         first.send_signal(signal.SIGKILL)
         first.wait(timeout=30)
     finally:
