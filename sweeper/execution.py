@@ -65,6 +65,10 @@ class TrialWorker:
         self._lock = threading.Lock()
         self._events: list[tuple[str, Any, Any]] = []
 
+    def ping(self) -> bool:
+        """Answers once the actor is placed and started (the pool counts only those)."""
+        return True
+
     def run(self, token: str, config: Any) -> dict[str, Any]:
         """Run ``train(config, report)``: ``{"result"}`` or ``{"error", "traceback"}``, and
         ``"events"``: the reports not drained yet."""
@@ -132,13 +136,18 @@ Event = Started | Reported | Finished | Errored | Lost
 @dataclass
 class _Slot:
     actor: Any
+    ready_ref: Any  # ping(): answers once the actor runs; None once it has
     token: str | None = None
     run_ref: Any = None
     drain_ref: Any = None
 
 
 class WorkerPool:
-    """``size`` actors with ``cpus``/``gpus`` each; one trial per actor at a time."""
+    """``size`` actors with ``cpus``/``gpus`` each; one trial per actor at a time.
+
+    Only actors that have started count as idle: after a node is lost, a replacement
+    actor may wait for resources indefinitely, and a trial handed to it would wait too.
+    """
 
     def __init__(
         self,
@@ -157,16 +166,40 @@ class WorkerPool:
         self._slots = [self._new_slot() for _ in range(size)]
 
     def _new_slot(self) -> _Slot:
-        return _Slot(TrialWorker.options(**self._options).remote(self._train))
+        actor = TrialWorker.options(**self._options).remote(self._train)
+        return _Slot(actor, actor.ping.remote())
+
+    def _ready(self, index: int) -> bool:
+        """Whether slot ``index``'s actor has started; one that died is replaced."""
+        slot = self._slots[index]
+        if slot.ready_ref is None:
+            return True
+        if not ray.wait([slot.ready_ref], timeout=0)[0]:
+            return False
+        try:
+            ray.get(slot.ready_ref)
+        except ray.exceptions.RayError:
+            ray.kill(slot.actor)
+            self._slots[index] = self._new_slot()
+            return False
+        slot.ready_ref = None
+        return True
+
+    def _idle_slots(self) -> list[_Slot]:
+        return [
+            self._slots[i]
+            for i in range(len(self._slots))
+            if self._slots[i].token is None and self._ready(i)
+        ]
 
     @property
     def idle(self) -> int:
-        """How many actors have no trial."""
-        return sum(slot.token is None for slot in self._slots)
+        """How many started actors have no trial."""
+        return len(self._idle_slots())
 
     def submit(self, token: str, config: Any) -> None:
         """Start ``config`` on an idle actor; ``token`` names it in the events."""
-        slot = next(slot for slot in self._slots if slot.token is None)
+        slot = self._idle_slots()[0]
         slot.token, slot.run_ref = token, slot.actor.run.remote(token, config)
 
     def poll(self, timeout: float = 1.0) -> list[Event]:

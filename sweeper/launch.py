@@ -308,8 +308,12 @@ def _drive(
             progress.set_state(job.entry.key, "failed")
             progress.note(f"{job.entry.key} failed: {attrs['error']}")
 
+        retry: deque[_Job] = deque()  # lost trials wait here for a started worker
         while queue or jobs:
-            while pool.idle and queue:
+            while pool.idle and (retry or queue):
+                if retry:
+                    dispatch(retry.popleft())
+                    continue
                 entry, trial = queue.popleft()
                 job = _Job(entry, trial._trial_id, trial.number)
                 store.start(job.trial_id)
@@ -337,7 +341,8 @@ def _drive(
                     store.set_attrs(job.trial_id, {"worker_deaths": job.deaths})
                     if job.attempts <= execution.retries:
                         progress.note(f"{job.entry.key}: worker lost ({event.error}); re-running")
-                        dispatch(job)
+                        progress.set_state(job.entry.key, "left")
+                        retry.append(job)
                     else:
                         error = f"worker died {job.attempts} times; last: {event.error}"
                         give_up(job, {"error": error})

@@ -89,6 +89,8 @@ def build_plan(spec: StudySpec) -> Plan:
                     eval_every=spec.budget.eval_every,
                     eval_episodes=spec.budget.eval_episodes,
                     seed=seed,
+                    # Ray does not hide GPUs from a trial that asked for none
+                    device="auto" if spec.execution.gpus_per_trial else "cpu",
                     threads=spec.execution.threads_per_trial,
                     checkpoint_every=spec.execution.checkpoint_every,
                     env_kwargs=dict(spec.env.options),

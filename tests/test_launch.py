@@ -287,3 +287,28 @@ def test_unreachable_ray_address_exits_2_and_writes_nothing(tmp_path):
     assert done.returncode == 2
     assert "sweeper launch: execution.address: cannot reach" in done.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_pool_counts_only_workers_that_started():
+    """A pool larger than the cluster (a node was lost) hands trials only to started
+    actors, so no trial waits on an actor that can never be placed."""
+    import time
+
+    from sweeper.execution import Finished, WorkerPool
+
+    config = prepare(CI_SPEC)[1].entries[0].trial_config
+    pool = WorkerPool(3, cpus=1, train=always_succeed)  # the module's Ray has 2 CPUs
+    try:
+        deadline = time.monotonic() + 60
+        while pool.idle < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        time.sleep(1.0)
+        assert pool.idle == 2
+        finished, pending = [], ["a", "b", "c"]
+        while len(finished) < 3 and time.monotonic() < deadline:
+            while pending and pool.idle:
+                pool.submit(pending.pop(0), config)
+            finished += [e.token for e in pool.poll(0.5) if isinstance(e, Finished)]
+        assert sorted(finished) == ["a", "b", "c"]
+    finally:
+        pool.shutdown()
