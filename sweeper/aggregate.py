@@ -77,12 +77,9 @@ AUC_COLUMNS = (
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``sweeper aggregate``."""
-    parser.add_argument("spec", help="the study spec, a YAML file (see studies/)")
-    parser.add_argument(
-        "--storage",
-        metavar="URL",
-        help="SQLAlchemy URL of the study database, overriding the spec's",
-    )
+    from sweeper.cli import add_spec_arguments
+
+    add_spec_arguments(parser)
     parser.add_argument(
         "--out", metavar="DIR", help="output folder (default: runs/<study>/aggregate)"
     )

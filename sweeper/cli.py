@@ -18,6 +18,17 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+def add_spec_arguments(parser: argparse.ArgumentParser) -> None:
+    """The arguments every study subcommand takes: the spec file and a storage override."""
+    parser.add_argument("spec", help="the study spec, a YAML file (see studies/)")
+    parser.add_argument(
+        "--storage",
+        metavar="URL",
+        help="SQLAlchemy URL of the study database, overriding the spec's "
+        "(default: sqlite:///runs/<study>/study.db; postgresql://user@host/db for a cluster)",
+    )
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser; only ``command``'s module is imported to add its arguments."""
     parser = argparse.ArgumentParser(

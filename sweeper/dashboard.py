@@ -19,12 +19,9 @@ from typing import Any
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``sweeper dashboard``."""
-    parser.add_argument("spec", help="the study spec, a YAML file (see studies/)")
-    parser.add_argument(
-        "--storage",
-        metavar="URL",
-        help="SQLAlchemy URL of the study database, overriding the spec's",
-    )
+    from sweeper.cli import add_spec_arguments
+
+    add_spec_arguments(parser)
     parser.add_argument(
         "--host", default="127.0.0.1", help="address to listen on (default: 127.0.0.1)"
     )

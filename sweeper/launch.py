@@ -43,13 +43,9 @@ HEARTBEAT_SECONDS = 15.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``sweeper launch``."""
-    parser.add_argument("spec", help="the study spec, a YAML file (see studies/)")
-    parser.add_argument(
-        "--storage",
-        metavar="URL",
-        help="SQLAlchemy URL of the study database, overriding the spec's "
-        "(default: sqlite:///runs/<study>/study.db; postgresql://user@host/db for a cluster)",
-    )
+    from sweeper.cli import add_spec_arguments
+
+    add_spec_arguments(parser)
     parser.add_argument(
         "--address",
         metavar="ADDR",

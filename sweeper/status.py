@@ -13,12 +13,9 @@ from typing import TextIO
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``sweeper status``."""
-    parser.add_argument("spec", help="the study spec, a YAML file (see studies/)")
-    parser.add_argument(
-        "--storage",
-        metavar="URL",
-        help="SQLAlchemy URL of the study database, overriding the spec's",
-    )
+    from sweeper.cli import add_spec_arguments
+
+    add_spec_arguments(parser)
 
 
 def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
