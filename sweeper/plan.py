@@ -18,12 +18,9 @@ import hashlib
 import json
 from dataclasses import dataclass
 
-from agent.config import SACConfig, TrialConfig
+from agent.config import RUNTIME_FIELDS, SACConfig, TrialConfig
 from sweeper.space import derive_rng, param_value, sample_configs
 from sweeper.spec import StudySpec
-
-#: TrialConfig fields that say where and how a trial runs, not what it computes.
-_RUNTIME_FIELDS = ("device", "threads", "checkpoint_dir", "checkpoint_every")
 
 
 @dataclass(frozen=True)
@@ -102,7 +99,7 @@ def build_plan(spec: StudySpec) -> Plan:
             "key": trial_key(method, config_id, seed),
             "params": params,
             "trial": {
-                k: v for k, v in dataclasses.asdict(config).items() if k not in _RUNTIME_FIELDS
+                k: v for k, v in dataclasses.asdict(config).items() if k not in RUNTIME_FIELDS
             },
         }
         for method, config_id, seed, params, _, config in drafts
