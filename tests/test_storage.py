@@ -8,6 +8,7 @@ import socket
 import sqlite3
 import subprocess
 import sys
+import time
 import uuid
 from dataclasses import dataclass, field
 
@@ -107,6 +108,8 @@ while not os.path.exists(sys.argv[2]):
             storage.get_all_trials(study._study_id)
             storage.get_study_user_attrs(study._study_id)
         reads += 1
+        if reads == 1:
+            open(sys.argv[3], "w").close()  # reading: the writer may start
     except Exception as e:
         errors.append(repr(e))
 print(json.dumps({"reads": reads, "errors": errors[:3], "n_errors": len(errors)}))
@@ -119,13 +122,18 @@ def test_sqlite_no_lost_write_with_a_dashboard_reading(sqlite_url, tmp_path):
     path = tmp_path / "sub" / "study.db"
     assert sqlite3.connect(path).execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     store = StudyStore.open_or_create(storage, "hammer", {"plan_hash": "h"})
-    stop = tmp_path / "stop"
+    stop, ready = tmp_path / "stop", tmp_path / "ready"
     reader = subprocess.Popen(
-        [sys.executable, "-c", READER, sqlite_url, str(stop)],
+        [sys.executable, "-c", READER, sqlite_url, str(stop), str(ready)],
         stdout=subprocess.PIPE,
         text=True,
     )
     try:
+        # the reader imports optuna first; write only once it is reading, so they overlap
+        deadline = time.monotonic() + 120
+        while not ready.exists() and reader.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert ready.exists(), "the reader process never read the study"
         numbers = []
         for trial_number in range(4):
             trial = store.add_waiting({"lr": 1e-3}, {"lr": (1e-3,)}, {"key": f"m/{trial_number}/0"})
