@@ -350,10 +350,14 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
     import pandas as pd
 
     from sweeper.stats import iqm, stratified_bootstrap_ci
+    from sweeper.storage import key_status
 
     trials = trial_rows(frame)
     current = trials[trials["counted"]]
     planned = study_info(frame).attrs.get("plan") or current["key"].tolist()
+    by_key = dict(
+        zip(current["key"], zip(current["state"], current["outcome"], strict=True), strict=True)
+    )
     done = trial_rows(scored(frame))
     samples = {m: g["auc"].to_numpy() for m, g in done.groupby("method")}
     intervals = stratified_bootstrap_ci(
@@ -361,21 +365,14 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
     )
     table = []
     for method in methods_of(frame):
-        mine = current[current["method"] == method]
         keys = [k for k in planned if k.split("/")[0] == method]
-        state, outcome = mine["state"], mine["outcome"]
-        running = int((state == "RUNNING").sum()) if driver_alive else 0
-        failed = int(((state == "FAIL") & (outcome != "interrupted")).sum())
-        finished = int((state == "COMPLETE").sum())
-        row = {
-            "method": method,
-            "planned": len(keys),
-            "done": finished,
-            "diverged": int(((state == "COMPLETE") & (outcome == "diverged")).sum()),
-            "running": running,
-            "failed": failed,
-            "left": len(set(keys) - set(mine["key"])) + len(mine) - finished - running - failed,
-        }
+        row: dict[str, Any] = {"method": method, "planned": len(keys)}
+        row.update(dict.fromkeys(("done", "diverged", "running", "failed", "left"), 0))
+        for key in keys:
+            state, outcome = by_key.get(key, (None, None))
+            status = key_status(state, outcome, driver_alive)
+            row[status] += 1
+            row["diverged"] += status == "done" and outcome == "diverged"
         values = samples.get(method, np.array([]))
         row.update(dict.fromkeys(AUC_COLUMNS), n=values.size)
         if values.size:

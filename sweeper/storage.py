@@ -226,16 +226,26 @@ def current_trials(trials: Iterable[FrozenTrial]) -> dict[str, FrozenTrial]:
     return current
 
 
-def ledger(
-    plan_keys: Sequence[str], trials: Iterable[FrozenTrial], driver_alive: bool
-) -> dict[str, Counts]:
-    """Per-method counts of the planned keys (method = the key's first part).
+def key_status(state: str | None, outcome: Any, driver_alive: bool) -> str:
+    """The ledger column of a plan key: "done", "running", "failed" or "left", from its
+    current trial's state name and ``outcome`` attr (``state=None``: no trial yet).
 
     A RUNNING trial counts as running only while a driver is alive; otherwise its driver
     died and the key is left for the next launch, like an interrupted one.
     """
-    from optuna.trial import TrialState
+    if state is None or state == "WAITING":
+        return "left"
+    if state == "COMPLETE":
+        return "done"
+    if state == "RUNNING":
+        return "running" if driver_alive else "left"
+    return "left" if outcome == "interrupted" else "failed"
 
+
+def ledger(
+    plan_keys: Sequence[str], trials: Iterable[FrozenTrial], driver_alive: bool
+) -> dict[str, Counts]:
+    """Per-method counts of the planned keys (method = the key's first part)."""
     current = current_trials(trials)
     tally: dict[str, dict[str, int]] = {}
     for key in plan_keys:
@@ -243,17 +253,9 @@ def ledger(
         line["planned"] += 1
         trial = current.get(key)
         outcome = trial.user_attrs.get("outcome") if trial else None
-        if trial is None or trial.state == TrialState.WAITING:
-            line["left"] += 1
-        elif trial.state == TrialState.COMPLETE:
-            line["done"] += 1
-            line["diverged"] += outcome == "diverged"
-        elif trial.state == TrialState.RUNNING:
-            line["running" if driver_alive else "left"] += 1
-        elif outcome == "interrupted":
-            line["left"] += 1
-        else:
-            line["failed"] += 1
+        status = key_status(trial.state.name if trial else None, outcome, driver_alive)
+        line[status] += 1
+        line["diverged"] += status == "done" and outcome == "diverged"
     return {method: Counts(**line) for method, line in tally.items()}
 
 
@@ -370,13 +372,14 @@ class StudyStore:
         from optuna.trial import TrialState
 
         trials = self.trials()
+        latest = current_trials(trials)
         by_key: dict[str, list[FrozenTrial]] = {}
         for trial in trials:
             by_key.setdefault(trial.user_attrs.get("key", ""), []).append(trial)
         todo = []
         for entry in entries:
             history = by_key.get(entry.key, [])
-            current = max(history, key=lambda t: t.number) if history else None
+            current = latest.get(entry.key)
             if current is not None and current.state == TrialState.COMPLETE:
                 continue
             if current is None or current.state != TrialState.WAITING:
