@@ -123,12 +123,10 @@ def study_attrs(spec: StudySpec, plan: Plan) -> dict[str, Any]:
 
 def report_metric_names(env: str) -> tuple[str, ...]:
     """The metric keys a trial on ``env`` reports (docs/architecture.md, "One trial")."""
-    from agent.envs import ENV_ENTRY_POINTS
+    from agent.envs import env_class
     from agent.metrics import metric_key
 
-    module_name, class_name = ENV_ENTRY_POINTS[env].split(":")
-    env_class = getattr(__import__(module_name, fromlist=[class_name]), class_name)
-    return tuple(metric_key(name) for name in env_class.metric_names)
+    return tuple(metric_key(name) for name in env_class(env).metric_names)
 
 
 @dataclass

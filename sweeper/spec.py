@@ -329,11 +329,10 @@ class EnvSpec(_Strict):
         """Check image_size and options against the env class (imported only when needed)."""
         if self.image_size is None and not self.options:
             return self
-        from agent.envs import ENV_ENTRY_POINTS
+        from agent.envs import env_class as load_env_class
 
-        module_name, class_name = ENV_ENTRY_POINTS[self.name].split(":")
         try:
-            env_class = getattr(__import__(module_name, fromlist=[class_name]), class_name)
+            env_class = load_env_class(self.name)
         except Exception as exc:  # an env module that is missing or broken
             raise _error(f"env {self.name!r} cannot be loaded: {exc}", at="name") from None
         if self.image_size is not None:

@@ -7,6 +7,7 @@ Importing this module registers every env; MuJoCo envs import MuJoCo only when b
 from __future__ import annotations
 
 import difflib
+import importlib
 import os
 from typing import Any
 
@@ -39,16 +40,20 @@ def check_env_name(name: str) -> str:
     return name
 
 
+def env_class(name: str) -> type[gym.Env]:
+    """The class of env ``name``, importing its module (and MuJoCo, for those envs)."""
+    check_env_name(name)
+    module_name, class_name = ENV_ENTRY_POINTS[name].split(":")
+    return getattr(importlib.import_module(module_name), class_name)
+
+
 def make_env(name: str, **kwargs: Any) -> gym.Env:
     """Build env ``name`` (see ``ENV_NAMES``) with its keyword options, unwrapped.
 
     Our envs count their own 50 steps, so no TimeLimit or order-enforcing wrapper is
     needed; ``gymnasium.make`` adds Gymnasium's standard wrappers on top.
     """
-    check_env_name(name)
-    module_name, class_name = ENV_ENTRY_POINTS[name].split(":")
-    module = __import__(module_name, fromlist=[class_name])
-    return getattr(module, class_name)(**kwargs)
+    return env_class(name)(**kwargs)
 
 
 for _name, _entry in ENV_ENTRY_POINTS.items():
