@@ -29,13 +29,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from agent.config import SACConfig
+from encoders.conv import conv_output_size, drq_conv_stack
 
 LOG_STD_MIN, LOG_STD_MAX = -10.0, 2.0
-
-
-def conv_output_size(image_size: int) -> int:
-    """Side of the conv feature map: one 3x3 stride-2 then three 3x3 stride-1 convs."""
-    return (image_size - 3) // 2 + 1 - 3 * 2
 
 
 def orthogonal_init(module: nn.Module) -> None:
@@ -74,14 +70,8 @@ class ConvEncoder(nn.Module):
 
     def __init__(self, image_size: int, num_filters: int) -> None:
         super().__init__()
-        side = conv_output_size(image_size)
-        if side < 1:
-            raise ValueError(f"image_size {image_size} is too small for the conv stack")
-        # in-place ReLUs: the conv maps are large and the CPU is memory-bound on them
-        layers: list[nn.Module] = [nn.Conv2d(3, num_filters, 3, stride=2), nn.ReLU(True)]
-        for _ in range(3):
-            layers += [nn.Conv2d(num_filters, num_filters, 3, stride=1), nn.ReLU(True)]
-        self.convs = nn.Sequential(*layers)
+        side = conv_output_size(image_size)  # raises if the image is too small
+        self.convs = drq_conv_stack(3, num_filters)
         self.repr_dim = num_filters * side * side
 
     def forward(self, images: Tensor) -> Tensor:

@@ -27,11 +27,12 @@ def conv_output_size(image_size: int) -> int:
 
 def drq_conv_stack(in_channels: int = 3, num_filters: int = 32) -> nn.Sequential:
     """The DrQ conv layers (input: float images in [0, 1]; output: [N, num_filters, s, s]
-    with ``s = conv_output_size(H)``). Default PyTorch initialisation."""
+    with ``s = conv_output_size(H)``). Default PyTorch initialisation. The ReLUs are in
+    place: the conv maps are large and the CPU is memory-bound on them."""
     layers: list[nn.Module] = []
     for i, stride in enumerate(DRQ_STRIDES):
         layers += [nn.Conv2d(in_channels if i == 0 else num_filters, num_filters, 3, stride)]
-        layers += [nn.ReLU()]
+        layers += [nn.ReLU(inplace=True)]
     return nn.Sequential(*layers)
 
 
