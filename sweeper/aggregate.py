@@ -92,12 +92,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``sweeper aggregate``: exit 0, or 2 with a one-line message on a bad spec or study."""
-    from sweeper.spec import load_spec
+    from sweeper.cli import spec_from_args
 
     try:
-        spec = load_spec(args.spec)
-        if args.storage is not None:
-            spec = spec.with_overrides(storage=args.storage)
+        spec = spec_from_args(args)
         out = Path(args.out) if args.out else spec.run_dir / "aggregate"
         result = aggregate(
             spec.storage_url, spec.study, out, seed=spec.seed, dashboard=not args.no_dashboard

@@ -7,6 +7,10 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from sweeper.spec import StudySpec
 
 #: subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -27,6 +31,14 @@ def add_spec_arguments(parser: argparse.ArgumentParser) -> None:
         help="SQLAlchemy URL of the study database, overriding the spec's "
         "(default: sqlite:///runs/<study>/study.db; postgresql://user@host/db for a cluster)",
     )
+
+
+def spec_from_args(args: argparse.Namespace) -> StudySpec:
+    """The spec named by ``args.spec`` with ``--storage`` applied; raises ``SpecError``."""
+    from sweeper.spec import load_spec
+
+    spec = load_spec(args.spec)
+    return spec if args.storage is None else spec.with_overrides(storage=args.storage)
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:

@@ -47,12 +47,10 @@ def _port(text: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """``sweeper dashboard``: serve until stopped; exit 0, or 2 on a bad spec or storage."""
-    from sweeper.spec import load_spec
+    from sweeper.cli import spec_from_args
 
     try:
-        spec = load_spec(args.spec)
-        if args.storage is not None:
-            spec = spec.with_overrides(storage=args.storage)
+        spec = spec_from_args(args)
         return serve(spec.storage_url, spec.study, args.host, args.port)
     except ValueError as e:  # SpecError, StorageError, no such study
         print(f"sweeper dashboard: {e}", file=sys.stderr)

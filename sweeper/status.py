@@ -20,17 +20,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
     """``sweeper status``: print the ledger; exit 0, or 2 on a bad spec or storage."""
-    from sweeper.plan import build_plan
-    from sweeper.spec import load_spec
-    from sweeper.storage import StorageError, check_storage, redact
+    from sweeper.launch import prepare
+    from sweeper.storage import StorageError, redact
 
     stream = sys.stdout if stream is None else stream
     try:
-        spec = load_spec(args.spec)
-        if args.storage is not None:
-            spec = spec.with_overrides(storage=args.storage)
-        plan = build_plan(spec)
-        check_storage(spec.storage_url)
+        spec, plan = prepare(args.spec, storage=args.storage)
         lines = status_lines(spec.study, spec.storage_url, plan.keys(), plan.hash)
     except (ValueError, StorageError) as e:
         print(f"sweeper status: {e}", file=sys.stderr)
