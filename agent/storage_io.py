@@ -50,23 +50,22 @@ def join(location: str, *parts: str) -> str:
     return str(_local(location).joinpath(*parts))
 
 
-def read_bytes(location: str) -> bytes | None:
-    """The bytes at ``location``, or None if there is nothing there."""
+def open_read(location: str) -> BinaryIO | None:
+    """The bytes at ``location`` as a binary file, or None if there is nothing there.
+
+    A local file is opened, not read into memory (checkpoints can be gigabytes); a URI's
+    object is downloaded.
+    """
     if not is_uri(location):
         try:
-            return _local(location).read_bytes()
+            return _local(location).open("rb")
         except FileNotFoundError:
             return None
     fs, path = _filesystem(location)
     try:
-        return fs.cat_file(path)
+        return io.BytesIO(fs.cat_file(path))
     except FileNotFoundError:
         return None
-
-
-def write_bytes_atomic(location: str, data: bytes) -> None:
-    """Write ``data`` at ``location`` atomically, creating parent directories."""
-    write_atomic(location, lambda f: f.write(data))
 
 
 def write_atomic(location: str, write: Callable[[BinaryIO], object]) -> None:

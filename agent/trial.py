@@ -25,11 +25,9 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import hashlib
-import io
 import time
 import warnings
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -174,15 +172,12 @@ def load_checkpoint(location: str, config: TrialConfig) -> dict[str, Any] | None
     """The checkpoint at ``location`` if there is one and it is intact, else None (with a
     warning if it is corrupt). A checkpoint of another trial config is an error: resuming
     it would mix two trials."""
-    if storage_io.is_uri(location):
-        data = storage_io.read_bytes(location)
-        source: Any = None if data is None else io.BytesIO(data)
-    else:
-        source = location if Path(location).exists() else None
+    source = storage_io.open_read(location)
     if source is None:
         return None
     try:
-        state = torch.load(source, map_location="cpu", weights_only=True)
+        with source:
+            state = torch.load(source, map_location="cpu", weights_only=True)
         digest = state.pop("digest")
         if state.get("format") != CHECKPOINT_FORMAT or digest != _digest(state):
             raise ValueError("digest or format mismatch")

@@ -6,7 +6,19 @@ import uuid
 
 import pytest
 
-from agent.storage_io import is_uri, join, read_bytes, write_bytes_atomic
+from agent.storage_io import is_uri, join, open_read, write_atomic
+
+
+def read_bytes(location: str) -> bytes | None:
+    source = open_read(location)
+    if source is None:
+        return None
+    with source:
+        return source.read()
+
+
+def write_bytes_atomic(location: str, data: bytes) -> None:
+    write_atomic(location, lambda f: f.write(data))
 
 
 def test_local_round_trip_overwrite_and_no_leftovers(tmp_path):
