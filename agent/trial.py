@@ -47,6 +47,7 @@ from agent.metrics import (
 )
 from agent.replay import ReplayBuffer
 from agent.sac import SAC
+from encoders.torch_base import resolve_device
 
 Report = Callable[[int, dict[str, float]], None]
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -60,14 +61,6 @@ class Diverged(Exception):
     def __init__(self, step: int, loss: str) -> None:
         super().__init__(f"{loss} is not finite at env step {step}")
         self.step, self.loss = step, loss
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device {name!r} requested but CUDA is not available")
-    return torch.device(name)
 
 
 def _seed(seed: int, stream: int) -> int:
