@@ -56,6 +56,27 @@ def test_registry_lists_the_six_encoders() -> None:
     assert encoder_options("linear") == {"latent_dim": 128}
 
 
+@pytest.mark.parametrize("name", ["pixel", "linear", "conv", "vae", "cvae", "vgg"])
+def test_declared_options_match_the_class_signature(name: str) -> None:
+    from encoders.registry import encoder_class, signature_options
+
+    assert encoder_options(name) == signature_options(encoder_class(name))
+
+
+def test_a_registered_encoder_without_declared_options_is_read_from_its_class() -> None:
+    from encoders import registry
+
+    registry.register("pixel_copy", "encoders.pixel:PixelEncoder")
+    try:
+        assert "pixel_copy" in encoder_names()
+        assert encoder_options("pixel_copy") == {}
+        assert make_encoder("pixel_copy", image_shape=(8, 8, 3)).encode(
+            np.zeros((1, 8, 8, 3), np.uint8)
+        ).shape == (1, 192)
+    finally:
+        del registry._REGISTRY["pixel_copy"]
+
+
 @pytest.mark.parametrize("size", [48, 84])
 @pytest.mark.parametrize("name", ["pixel", "linear", "conv", "vae", "cvae", "vgg"])
 def test_shapes_determinism_and_zero_self_distance(name: str, size: int, vgg_weights) -> None:

@@ -56,8 +56,6 @@ def vgg_weights(tmp_path, monkeypatch) -> Path:
 
 @pytest.mark.parametrize("name", ["fetch_reach", "sawyer_door", "fetch_push", "quickstart", "ci"])
 def test_shipped_studies_load(name, vgg_weights):
-    if name == "sawyer_door":
-        pytest.importorskip("agent.envs.sawyer_door")
     spec = load_spec(ROOT / "studies" / f"{name}.yaml")
     assert spec.study == name
     assert spec.env.name in ("point_reach", name)
@@ -70,6 +68,20 @@ def test_shipped_studies_load(name, vgg_weights):
     scale = {"fetch_reach": (20_000, 20), "sawyer_door": (1_000_000, 8)}
     if name in scale:
         assert (spec.budget.env_steps, spec.trials_per_method) == scale[name]
+
+
+def test_checking_a_spec_imports_no_torch(vgg_weights):
+    """The driver validates specs of every encoder without torch (start-up time, memory)."""
+    code = (
+        "import sys; from sweeper.launch import prepare, study_attrs; "
+        "spec, plan = prepare(sys.argv[1]); study_attrs(spec, plan); "
+        "assert 'torch' not in sys.modules, 'torch was imported'"
+    )
+    subprocess.run(
+        [sys.executable, "-c", code, str(ROOT / "studies" / "fetch_reach.yaml")],
+        cwd=ROOT,
+        check=True,
+    )
 
 
 def test_defaults_and_properties():
