@@ -10,6 +10,7 @@ replaces the actor.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import socket
@@ -21,9 +22,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import ray
-
-#: env vars every worker gets: headless MuJoCo rendering
-WORKER_ENV_VARS = {"MUJOCO_GL": "egl"}
 
 
 def start_ray(address: str | None, num_cpus: int | None = None) -> bool:
@@ -58,9 +56,25 @@ def _check_reachable(address: str, timeout: float = 10.0) -> None:
 
 @ray.remote
 class TrialWorker:
-    """Runs one trial at a time; a second thread answers ``drain`` while a trial runs."""
+    """Runs one trial at a time; a second thread answers ``drain`` while a trial runs.
 
-    def __init__(self, train: Callable[..., Any] | None = None) -> None:
+    With ``train=None`` it runs ``agent.train``, imported here with the module of ``env``
+    (torch, MuJoCo: seconds), so the import overlaps the driver's start-up instead of
+    delaying the first trial.
+    """
+
+    def __init__(self, train: Callable[..., Any] | None = None, env: str | None = None) -> None:
+        # headless rendering unless the node says otherwise; set here, not as a Ray
+        # runtime_env, which would cost each actor a fresh worker process (~1 s)
+        os.environ.setdefault("MUJOCO_GL", "egl")
+        if train is None:
+            # an import that fails here fails again in run(), which reports it as the error
+            with contextlib.suppress(Exception):
+                import agent.trial  # noqa: F401  (torch and the SAC agent)
+                from agent.envs import env_class
+
+                if env is not None:
+                    env_class(env)
         self._train = train
         self._lock = threading.Lock()
         self._events: list[tuple[str, Any, Any]] = []
@@ -76,10 +90,10 @@ class TrialWorker:
             self._events = []
         where = {"node": ray.util.get_node_ip_address(), "pid": os.getpid()}
         self._push(token, "where", where)
-        train = self._train
-        if train is None:
-            from agent import train
         try:
+            train = self._train
+            if train is None:
+                from agent import train
             result = train(config, report=lambda step, metrics: self._push(token, step, metrics))
             outcome: dict[str, Any] = {"result": result}
         except Exception as e:
@@ -147,6 +161,7 @@ class WorkerPool:
 
     Only actors that have started count as idle: after a node is lost, a replacement
     actor may wait for resources indefinitely, and a trial handed to it would wait too.
+    ``train`` and ``env`` are passed to each ``TrialWorker``.
     """
 
     def __init__(
@@ -155,19 +170,29 @@ class WorkerPool:
         cpus: float = 1,
         gpus: float = 0,
         train: Callable[..., Any] | None = None,
+        env: str | None = None,
     ) -> None:
         self._options = {
             "num_cpus": cpus,
             "num_gpus": gpus,
             "max_concurrency": 2,  # run + drain
-            "runtime_env": {"env_vars": dict(WORKER_ENV_VARS)},
         }
-        self._train = train
+        self._train, self._env = train, env
         self._slots = [self._new_slot() for _ in range(size)]
 
     def _new_slot(self) -> _Slot:
-        actor = TrialWorker.options(**self._options).remote(self._train)
+        actor = TrialWorker.options(**self._options).remote(self._train, self._env)
         return _Slot(actor, actor.ping.remote())
+
+    def shrink(self, size: int) -> None:
+        """Keep at most ``size`` actors, killing idle ones (e.g. when few trials are left)."""
+        excess = max(0, len(self._slots) - size)
+        for slot in [slot for slot in self._slots if slot.token is None][:excess]:
+            ray.kill(slot.actor)
+            self._slots.remove(slot)
+
+    def __len__(self) -> int:
+        return len(self._slots)
 
     def _ready(self, index: int) -> bool:
         """Whether slot ``index``'s actor has started; one that died is replaced."""
@@ -203,20 +228,24 @@ class WorkerPool:
         slot.token, slot.run_ref = token, slot.actor.run.remote(token, config)
 
     def poll(self, timeout: float = 1.0) -> list[Event]:
-        """Wait up to ``timeout`` s for a trial to end; return what happened meanwhile.
+        """Wait up to ``timeout`` s for a trial to end or an actor to start; return what
+        happened meanwhile.
 
         Each busy actor has at most one ``drain`` call in flight, collected when it
         answers, so no report is dropped and a slow actor never blocks the others.
         """
         busy = [slot for slot in self._slots if slot.token is not None]
-        if not busy:
-            time.sleep(timeout)
-            return []
+        starting = [self._slots[i].ready_ref for i in range(len(self)) if not self._ready(i)]
         for slot in busy:
             if slot.drain_ref is None:
                 slot.drain_ref = slot.actor.drain.remote()
         refs = [slot.run_ref for slot in busy]
-        ray.wait(refs, num_returns=1, timeout=timeout)
+        if not refs + starting:
+            time.sleep(timeout)
+        else:
+            ray.wait(refs + starting, num_returns=1, timeout=timeout)
+        if not refs:
+            return []
         done, _ = ray.wait(refs, num_returns=len(refs), timeout=0)
         events: list[Event] = []
         for slot in busy:

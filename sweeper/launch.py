@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 if TYPE_CHECKING:
+    from sweeper.execution import WorkerPool
     from sweeper.plan import Plan, PlanEntry
     from sweeper.progress import Progress
     from sweeper.spec import StudySpec
@@ -171,7 +172,7 @@ def launch(
     """
     import ray
 
-    from sweeper.execution import resources_fit, start_ray
+    from sweeper.execution import WorkerPool, resources_fit, start_ray
 
     stream = sys.stderr if stream is None else stream
     execution = spec.execution
@@ -200,19 +201,19 @@ def launch(
                 f"not execution.max_concurrent={execution.max_concurrent}",
                 file=stream,
             )
-        return _run_study(spec, plan, min(fit, execution.max_concurrent), train, stream)
+        # the workers start (importing torch and the env) while the driver opens the study
+        size = min(fit, execution.max_concurrent, len(plan.entries))
+        pool = WorkerPool(size, cpus=cpus, gpus=gpus, train=train, env=spec.env.name)
+        try:
+            return _run_study(spec, plan, pool, stream)
+        finally:
+            pool.shutdown()
     finally:
         if started_ray:
             ray.shutdown()
 
 
-def _run_study(
-    spec: StudySpec,
-    plan: Plan,
-    concurrency: int,
-    train: Callable[..., Any] | None,
-    stream: TextIO,
-) -> int:
+def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) -> int:
     """Open the study as its driver, sync it with the plan and run what is left."""
     import optuna
 
@@ -246,8 +247,9 @@ def _run_study(
             )
             if not todo:
                 return 0
+            pool.shrink(len(todo))
             progress = Progress(spec.study, plan.keys(), spec.budget.env_steps, stream)
-            return _drive(spec, store, todo, min(concurrency, len(todo)), progress, train, stream)
+            return _drive(spec, store, todo, pool, progress, stream)
         finally:
             store.release_driver()
     finally:
@@ -259,23 +261,18 @@ def _drive(
     spec: StudySpec,
     store: StudyStore,
     todo: list[tuple[PlanEntry, Any]],
-    concurrency: int,
+    pool: WorkerPool,
     progress: Progress,
-    train: Callable[..., Any] | None,
     stream: TextIO,
 ) -> int:
     """The driver loop: dispatch keys to workers, write what comes back."""
     from agent.storage_io import is_uri
-    from sweeper.execution import Errored, Finished, Lost, Reported, Started, WorkerPool
+    from sweeper.execution import Errored, Finished, Lost, Reported, Started
 
     execution = spec.execution
-    pool = None
     jobs: dict[str, _Job] = {}
     previous_handler = _sigterm_to_interrupt()
     try:
-        pool = WorkerPool(
-            concurrency, cpus=execution.cpus_per_trial, gpus=execution.gpus_per_trial, train=train
-        )
         queue = deque(todo)
         failed = 0
         last_beat = time.monotonic()
@@ -355,9 +352,7 @@ def _drive(
             return 1
         return 0
     except KeyboardInterrupt:
-        if pool is not None:
-            pool.shutdown()
-            pool = None
+        pool.shutdown()  # stops the trials in flight at once
         for job in jobs.values():
             # it may have been stopped while being told; then the next sync reaps it
             with contextlib.suppress(Exception):
@@ -371,8 +366,6 @@ def _drive(
         return 130
     finally:
         _restore_sigterm(previous_handler)
-        if pool is not None:
-            pool.shutdown()
 
 
 def _record_result(store: StudyStore, job: _Job, result: Any) -> None:

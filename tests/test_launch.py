@@ -312,3 +312,60 @@ def test_pool_counts_only_workers_that_started():
         assert sorted(finished) == ["a", "b", "c"]
     finally:
         pool.shutdown()
+
+
+def _wait_idle(pool, count: int, seconds: float = 60) -> None:
+    import time
+
+    deadline = time.monotonic() + seconds
+    while pool.idle < count and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert pool.idle == count
+
+
+def test_workers_import_the_agent_and_env_before_their_first_trial():
+    """Warm workers: torch, the agent and the env module load while the driver starts up."""
+    from sweeper.execution import WorkerPool
+
+    def loaded(worker) -> list[str]:
+        wanted = ("torch", "agent.trial", "agent.envs.point_reach")
+        return [name for name in wanted if name in sys.modules]
+
+    pool = WorkerPool(1, env="point_reach")
+    try:
+        _wait_idle(pool, 1)
+        actor = pool._slots[0].actor
+        assert ray.get(actor.__ray_call__.remote(loaded)) == [
+            "torch",
+            "agent.trial",
+            "agent.envs.point_reach",
+        ]
+    finally:
+        pool.shutdown()
+
+
+def test_a_failing_warm_up_does_not_kill_the_worker():
+    """The warm-up import failing (here: an unknown env) leaves the actor up; the trial
+    then reports the error, instead of the pool replacing the actor forever."""
+    from sweeper.execution import WorkerPool
+
+    pool = WorkerPool(1, env="no_such_env")
+    try:
+        _wait_idle(pool, 1)
+    finally:
+        pool.shutdown()
+
+
+def test_shrink_kills_idle_workers_only_down_to_the_size():
+    from sweeper.execution import WorkerPool
+
+    pool = WorkerPool(2, train=always_succeed)
+    try:
+        _wait_idle(pool, 2)
+        pool.shrink(5)
+        assert len(pool) == 2
+        pool.shrink(1)
+        assert len(pool) == 1
+        _wait_idle(pool, 1)
+    finally:
+        pool.shutdown()
