@@ -148,7 +148,7 @@ def load_study_frame(storage_url: str, study_name: str) -> pd.DataFrame:
     from sqlalchemy import create_engine, inspect, text
     from sqlalchemy.exc import SQLAlchemyError
 
-    from sweeper.storage import SQLITE_TIMEOUT, redact, resolve_url, sqlite_path
+    from sweeper.storage import SQLITE_TIMEOUT, database_error, redact, resolve_url, sqlite_path
 
     url = resolve_url(storage_url)
     path = sqlite_path(url)
@@ -195,8 +195,7 @@ def load_study_frame(storage_url: str, study_name: str) -> pd.DataFrame:
                 "SELECT key, value_json FROM study_user_attributes WHERE study_id = :study"
             )
     except SQLAlchemyError as e:  # unreachable server, locked or corrupt file
-        reason = str(getattr(e, "orig", None) or e).strip().splitlines()[0]
-        raise ValueError(f"storage: cannot read {redact(storage_url)}: {reason}") from None
+        raise database_error("cannot read", storage_url, e) from None
     finally:
         engine.dispose()
     return _build_frame(study_name, trials, values, user_attrs, params, intermediate, study_attrs)

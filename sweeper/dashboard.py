@@ -80,7 +80,14 @@ def serve(
     from optuna.exceptions import StorageInternalError
     from sqlalchemy.exc import SQLAlchemyError
 
-    from sweeper.storage import StudyStore, open_storage, redact, resolve_url, sqlite_path
+    from sweeper.storage import (
+        StudyStore,
+        database_error,
+        open_storage,
+        redact,
+        resolve_url,
+        sqlite_path,
+    )
 
     path = sqlite_path(resolve_url(storage_url))
     if path is not None and not path.is_file():
@@ -90,8 +97,7 @@ def serve(
         storage = open_storage(storage_url, create=False)
         store = StudyStore.find(storage, study_name)
     except (SQLAlchemyError, StorageInternalError) as e:  # no Optuna tables, no server
-        reason = str(getattr(e, "orig", None) or e).strip().splitlines()[0]
-        raise ValueError(f"storage: cannot read {redact(storage_url)}: {reason}") from None
+        raise database_error("cannot read", storage_url, e) from None
     if store is None:
         raise ValueError(f"study {study_name!r} not found in {redact(storage_url)}")
 

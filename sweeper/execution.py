@@ -259,7 +259,7 @@ class WorkerPool:
             try:
                 outcome = ray.get(slot.run_ref)
             except ray.exceptions.RayError as e:
-                events.append(Lost(token, f"{type(e).__name__}: {_plain(e)}"))
+                events.append(Lost(token, f"{type(e).__name__}: {one_line(e)}"))
                 ray.kill(slot.actor)
                 self._slots[index] = self._new_slot()
                 continue
@@ -302,8 +302,9 @@ class WorkerPool:
         self._slots = []
 
 
-def _plain(error: BaseException, limit: int = 2000) -> str:
-    """Ray's message of ``error`` on one line, without terminal colours."""
+def one_line(error: BaseException, limit: int = 2000) -> str:
+    """The message of ``error`` (Ray's are long, coloured, multi-line) on one line, without
+    terminal colours, cut at ``limit`` characters."""
     text = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", str(error)).split())
     return (text[:limit] + " ...") if len(text) > limit else text or "no message"
 

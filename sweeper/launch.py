@@ -172,7 +172,7 @@ def launch(
     """
     import ray
 
-    from sweeper.execution import WorkerPool, resources_fit, start_ray
+    from sweeper.execution import WorkerPool, one_line, resources_fit, start_ray
 
     stream = sys.stderr if stream is None else stream
     execution = spec.execution
@@ -183,7 +183,7 @@ def launch(
         )
     except Exception as e:  # ConnectionError, an auth error, ...
         where = f"the Ray cluster at {execution.address!r}" if execution.address else "local Ray"
-        reason = " ".join(str(e).split())[:500]
+        reason = one_line(e, limit=500)
         print(f"sweeper launch: execution.address: cannot reach {where}: {reason}", file=stream)
         return 2
     try:

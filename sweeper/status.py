@@ -44,9 +44,9 @@ def status_lines(study: str, url: str, keys: list[str], plan_hash: str) -> list[
         StorageError,
         StudyStore,
         current_trials,
+        database_error,
         ledger,
         open_storage,
-        redact,
         resolve_url,
         sqlite_path,
     )
@@ -58,8 +58,7 @@ def status_lines(study: str, url: str, keys: list[str], plan_hash: str) -> list[
     try:
         storage = open_storage(url, create=False)
     except (SQLAlchemyError, optuna.exceptions.StorageInternalError) as e:
-        reason = " ".join(str(getattr(e, "orig", e)).split())[:300]
-        raise StorageError(f"storage: cannot read {redact(url)}: {reason}") from None
+        raise database_error("cannot read", url, e) from None
     try:
         store = StudyStore.find(storage, study)
         if store is None:

@@ -75,6 +75,15 @@ def redact(url: str) -> str:
         return url.split("@")[-1]
 
 
+def database_error(action: str, url: str, error: BaseException) -> StorageError:
+    """``storage: {action} {url}: {reason}`` for an error the database raised, on one line:
+    the driver's own message (SQLAlchemy keeps it as ``orig``), first line, password hidden.
+    """
+    text = str(getattr(error, "orig", None) or error).strip()
+    reason = text.splitlines()[0] if text else type(error).__name__
+    return StorageError(f"storage: {action} {redact(url)}: {reason}")
+
+
 def sqlite_path(url: str) -> Path | None:
     """The file of a ``sqlite:///`` URL, None for other backends."""
     from sqlalchemy.engine import make_url
@@ -125,8 +134,7 @@ def check_storage(url: str) -> None:
         with engine.connect() as connection:
             connection.execute(text("SELECT 1"))
     except Exception as e:
-        reason = str(getattr(e, "orig", e)).strip().splitlines()[0]
-        raise StorageError(f"storage: cannot connect to {redact(url)}: {reason}") from None
+        raise database_error("cannot connect to", url, e) from None
     finally:
         engine.dispose()
 

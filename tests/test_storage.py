@@ -24,6 +24,7 @@ from sweeper.storage import (
     StudyStore,
     check_storage,
     current_trials,
+    database_error,
     ledger,
     open_storage,
     resolve_url,
@@ -65,6 +66,18 @@ def pg_url():
     yield f"postgresql://postgres@127.0.0.1:5432/test?options=-csearch_path%3D{schema}"
     with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
         connection.execute(f"DROP SCHEMA {schema} CASCADE")
+
+
+def test_database_error_is_one_line_without_the_password():
+    class Wrapped(Exception):  # as SQLAlchemy wraps the driver's error
+        orig = OSError("connection refused\n\tIs the server running?")
+
+    error = database_error("cannot read", "postgresql://u:secret@h/db", Wrapped("long text"))
+    assert isinstance(error, StorageError)
+    assert str(error) == "storage: cannot read postgresql://u:***@h/db: connection refused"
+    assert str(database_error("cannot connect to", "sqlite:///x.db", KeyError())) == (
+        "storage: cannot connect to sqlite:///x.db: KeyError"
+    )
 
 
 def test_resolve_url_uses_psycopg3_for_postgresql():
