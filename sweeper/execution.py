@@ -43,7 +43,7 @@ def start_ray(address: str | None, num_cpus: int | None = None) -> bool:
 
 
 def _check_reachable(address: str, timeout: float = 10.0) -> None:
-    """Raise ConnectionError if ``host:port`` does not accept connections: ``ray.init``
+    """Raise ``Unreachable`` if ``host:port`` does not accept connections: ``ray.init``
     would retry for minutes. Other forms ("auto") are left to Ray."""
     host, _, port = address.split("://")[-1].rpartition(":")
     if not host or not port.isdigit():
@@ -51,7 +51,11 @@ def _check_reachable(address: str, timeout: float = 10.0) -> None:
     try:
         socket.create_connection((host, int(port)), timeout=timeout).close()
     except OSError as e:
-        raise ConnectionError(f"nothing answers at {host}:{port} ({e})") from None
+        raise Unreachable(f"nothing answers at {host}:{port} ({e})") from None
+
+
+class Unreachable(ConnectionError):
+    """Nothing accepts connections at the Ray address."""
 
 
 @ray.remote

@@ -22,6 +22,7 @@ import argparse
 import contextlib
 import dataclasses
 import math
+import os
 import signal
 import sys
 import time
@@ -172,7 +173,7 @@ def launch(
     """
     import ray
 
-    from sweeper.execution import WorkerPool, one_line, resources_fit, start_ray
+    from sweeper.execution import WorkerPool, resources_fit, start_ray
 
     stream = sys.stderr if stream is None else stream
     execution = spec.execution
@@ -182,9 +183,7 @@ def launch(
             execution.address, num_cpus=math.ceil(execution.max_concurrent * cpus)
         )
     except Exception as e:  # ConnectionError, an auth error, ...
-        where = f"the Ray cluster at {execution.address!r}" if execution.address else "local Ray"
-        reason = one_line(e, limit=500)
-        print(f"sweeper launch: execution.address: cannot reach {where}: {reason}", file=stream)
+        print(cannot_reach_message(execution.address, e), file=stream)
         return 2
     try:
         fit = resources_fit(cpus, gpus)
@@ -211,6 +210,27 @@ def launch(
     finally:
         if started_ray:
             ray.shutdown()
+
+
+def cannot_reach_message(address: str | None, error: BaseException) -> str:
+    """The one-line error for a Ray that cannot be started or joined.
+
+    Ray reports a cluster that refuses the driver's token only in its own log lines
+    ("InvalidAuthToken"), then fails with a bare "Failed to connect", so the message says
+    what to set when the driver is not in token mode.
+    """
+    from sweeper.execution import Unreachable, one_line
+
+    where = f"the Ray cluster at {address!r}" if address else "local Ray"
+    message = f"sweeper launch: execution.address: cannot reach {where}: {one_line(error, 500)}"
+    token_mode = os.environ.get("RAY_AUTH_MODE") == "token"
+    if address and not token_mode and not isinstance(error, Unreachable):
+        message += (
+            "; if Ray's lines above say InvalidAuthToken, the cluster uses token "
+            "authentication: set RAY_AUTH_MODE=token and its token (RAY_AUTH_TOKEN or "
+            "~/.ray/auth_token), see docs/cluster.md"
+        )
+    return message
 
 
 def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) -> int:

@@ -286,7 +286,28 @@ def test_unreachable_ray_address_exits_2_and_writes_nothing(tmp_path):
     )
     assert done.returncode == 2
     assert "sweeper launch: execution.address: cannot reach" in done.stderr
+    assert "nothing answers at 127.0.0.1:1" in done.stderr
+    assert "RAY_AUTH_MODE" not in done.stderr  # no token hint when nothing listens
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_refused_connection_names_token_authentication(monkeypatch):
+    from sweeper.launch import cannot_reach_message
+
+    refused = ConnectionError("Failed to connect to Ray cluster at 10.0.0.1:6379")
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    message = cannot_reach_message("10.0.0.1:6379", refused)
+    assert message.startswith(
+        "sweeper launch: execution.address: cannot reach the Ray cluster at '10.0.0.1:6379': "
+        "Failed to connect to Ray cluster at 10.0.0.1:6379; if Ray's lines above say "
+        "InvalidAuthToken"
+    )
+    assert "set RAY_AUTH_MODE=token" in message
+    monkeypatch.setenv("RAY_AUTH_MODE", "token")  # already in token mode: the token is wrong
+    assert "RAY_AUTH_MODE" not in cannot_reach_message("10.0.0.1:6379", refused)
+    assert cannot_reach_message(None, RuntimeError("no\n  room")) == (
+        "sweeper launch: execution.address: cannot reach local Ray: no room"
+    )
 
 
 def test_pool_counts_only_workers_that_started():
