@@ -10,6 +10,7 @@ import json
 import os
 import re
 import shutil
+import sqlite3
 import subprocess
 import sys
 import zipfile
@@ -223,6 +224,16 @@ def test_compose_services(config):
             assert port["host_ip"] == "127.0.0.1", f"{name} must not listen on every interface"
 
 
+def test_every_ray_object_store_fits_in_dev_shm(config):
+    """Ray falls back to a file in /tmp when /dev/shm is smaller than its object store (by
+    default 30% of the host's memory), so every node sizes the store below shm_size."""
+    services = config["services"]
+    for name in ("ray-head", "ray-worker", "launch"):
+        words = " ".join([*(services[name]["entrypoint"] or []), *services[name]["command"]])
+        (size,) = re.findall(r"--object-store-memory=(\d+)", words)
+        assert 0 < int(size) < int(services[name]["shm_size"]), name
+
+
 def test_every_node_shares_one_image_and_the_runs_volume(config):
     nodes = [config["services"][n] for n in ("ray-head", "ray-worker", "launch")]
     assert len({n["image"] for n in nodes}) == 1, "Ray needs the same versions on every node"
@@ -294,9 +305,27 @@ def test_launch_joins_the_cluster_then_runs_sweeper_launch(config, tmp_path):
 
     ray_call, sweeper_call = (line.split("\t")[:-1] for line in log.read_text().splitlines())
     # A Ray driver needs a raylet on its own host: it joins as a node that takes no trials.
-    assert ray_call == ["ray", "start", "--address=ray-head:6379", "--num-cpus=0"]
+    assert ray_call[:4] == ["ray", "start", "--address=ray-head:6379", "--num-cpus=0"]
+    assert ray_call[4:] == ["--object-store-memory=1000000000"]  # the default, below shm_size
     args = build_parser("launch").parse_args(sweeper_call[1:])
     assert args.command == "launch" and args.spec == "studies/fetch_reach.yaml"
     assert args.address == "ray-head:6379" and args.max_concurrent == 3
     assert args.storage == config["services"]["dashboard"]["command"][-1]  # the same database
     assert (REPO / launch["command"][0]).is_file(), "the default spec exists"
+
+
+def test_dashboard_creates_the_study_tables_then_runs_its_command(config, tmp_path):
+    """optuna-dashboard exits on a database without Optuna's tables, so the dashboard's
+    entrypoint creates them first (as the driver would), then execs its command."""
+    dashboard = config["services"]["dashboard"]
+    entrypoint = [word.replace("$$", "$") for word in dashboard["entrypoint"]]
+    database, served = tmp_path / "fresh.db", tmp_path / "served"
+    # stands in for `optuna-dashboard ... URL`: the URL is the last argument, as in compose
+    command = [sys.executable, "-c", f"open({str(served)!r}, 'w')", f"sqlite:///{database}"]
+    env = {"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin"}  # `python` with the project
+    subprocess.run([*entrypoint, *command], env=env, check=True, timeout=60)
+    assert served.exists()
+    with sqlite3.connect(database) as connection:
+        tables = {row[0] for row in connection.execute("SELECT name FROM sqlite_master")}
+    connection.close()
+    assert {"version_info", "studies", "trials"} <= tables
