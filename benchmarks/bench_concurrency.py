@@ -1,10 +1,11 @@
 """Concurrency benchmark: the same small point_reach study with 1 and 2 trials at once.
 
-    .venv/bin/python benchmarks/bench_concurrency.py [--trials 4] [--env-steps 5000] [--repeat 1]
+    .venv/bin/python benchmarks/bench_concurrency.py [--trials 4] [--env-steps 5000]
+        [--repeat 1] [--ray both|head|local] [--address ADDR]
 
-Each run is a real ``sweeper launch`` (a subprocess: Python and torch imports, a local Ray,
-the study database, the worker actors, the driver loop) on a fresh SQLite study in a
-temporary directory. For a run with ``c`` trials at once it prints:
+Each run is a real ``sweeper launch`` (a subprocess: Python and torch imports, Ray (its own
+or a running one), the study database, the worker actors, the driver loop) on a fresh SQLite
+study in a temporary directory. For a run with ``c`` trials at once it prints:
 
 - ``wall``: seconds from starting ``sweeper launch`` to its exit (W);
 - ``in trials``: the sum over trials of the time each trial measured inside
@@ -29,27 +30,36 @@ temporary directory. For a run with ``c`` trials at once it prints:
   mean over the later ones (the per-trial cost of dispatching and recording);
 - ``speed-up`` (for c = 2): W(c=1) / W(c=2).
 
-The target is an overhead under 5%. The fixed start-up and tail (Ray's own start and stop,
-and each worker importing torch; on a machine whose page cache has been emptied, seconds
-more) do not grow with the study, so the benchmark also prints the study wall time from
-which the idle-slot share stays under 5%. ``--address`` runs on an already started Ray
-(``ray start --head``), which leaves Ray's start and stop out.
+The target is an overhead under 5%. Each configuration runs twice over (``--ray both``,
+the default): on a running one-node Ray cluster (a ``ray start --head`` that the benchmark
+starts first, as docs/cluster.md starts one; each launch joins it with ``--address``, as on
+a cluster), and with each launch starting and stopping its own local Ray (``sweeper
+launch`` without ``--address``), which adds Ray's own start and stop (~5-7 s) to every
+study. The fixed start-up and tail (that, and each worker importing torch; seconds more on a
+machine whose page cache has been emptied) do not grow with the study, so the benchmark
+also prints the study wall time from which the idle-slot share stays under 5%.
+``--address`` runs on a cluster that is already up instead.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import socket
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
+#: for the head the benchmark starts, and for the drivers joining it (docs/cluster.md)
+HEAD_ENV = {"RAY_AUTH_MODE": "token", "RAY_USAGE_STATS_ENABLED": "0"}
 
 
 def run_study(
@@ -69,6 +79,8 @@ def run_study(
     spec_path = workdir / f"{study}.yaml"
     spec_path.write_text(yaml.safe_dump(spec))
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
+    if address is not None:
+        env.update(HEAD_ENV)
     start_wall = time.time()
     start = time.perf_counter()
     result = subprocess.run(
@@ -135,27 +147,49 @@ def main() -> None:
         help="runs per concurrency, interleaved; figures are medians (default 1)",
     )
     parser.add_argument(
+        "--ray",
+        choices=("both", "head", "local"),
+        default="both",
+        help="head: every launch joins one `ray start --head` that the benchmark starts first "
+        "(a one-node cluster, as on a cluster); local: every launch starts and stops its own "
+        "Ray; both (default): head, then local",
+    )
+    parser.add_argument(
         "--address",
         metavar="ADDR",
-        help="run on the Ray cluster at ADDR (e.g. a `ray start --head` on this machine): "
-        "the figures then leave out starting and stopping Ray",
+        help="run on the Ray cluster already at ADDR instead (leaves out --ray)",
     )
     args = parser.parse_args()
     print(
         f"studies/ci.yaml (point_reach 32x32) as pixel only, {args.trials} trials x "
-        f"{args.env_steps} env steps, {os.cpu_count()} CPUs, Ray: {args.address or 'local'}, "
+        f"{args.env_steps} env steps, {os.cpu_count()} CPUs, "
         f"load average {os.getloadavg()[0]:.1f} (other work on the CPUs skews every figure)"
     )
-    runs: dict[int, list[dict[str, float]]] = {1: [], 2: []}
+    modes = ["head", "local"] if args.ray == "both" else [args.ray]
+    if args.address:
+        modes = [args.address]
     with tempfile.TemporaryDirectory(prefix="bench_concurrency_") as tmp:
-        for repeat in range(args.repeat):
-            for concurrency in runs:
-                workdir = Path(tmp) / f"c{concurrency}_{repeat}"
-                workdir.mkdir()
-                row = run_study(workdir, args.trials, args.env_steps, concurrency, args.address)
-                runs[concurrency].append(row)
-                print_row(f"c={concurrency}", row)
+        for mode in modes:
+            if mode == "head":
+                with ray_head(Path(tmp)) as address:
+                    measure(Path(tmp), args, f"a running one-node Ray ({address})", address)
+            else:
+                address = None if mode == "local" else mode
+                what = "its own local Ray each launch" if address is None else address
+                measure(Path(tmp), args, what, address)
     print(f"load average at the end: {os.getloadavg()[0]:.1f}")
+
+
+def measure(tmp: Path, args: argparse.Namespace, what: str, address: str | None) -> None:
+    """Run the study at c = 1 and c = 2 (``args.repeat`` times each) and print the figures."""
+    print(f"\n== Ray: {what}")
+    runs: dict[int, list[dict[str, float]]] = {1: [], 2: []}
+    for repeat in range(args.repeat):
+        for concurrency in runs:
+            workdir = Path(tempfile.mkdtemp(prefix=f"c{concurrency}_{repeat}_", dir=tmp))
+            row = run_study(workdir, args.trials, args.env_steps, concurrency, address)
+            runs[concurrency].append(row)
+            print_row(f"c={concurrency}", row)
     rows = [{k: statistics.median(r[k] for r in runs[c]) for k in runs[c][0]} for c in runs]
     if args.repeat > 1:
         for row in rows:
@@ -178,6 +212,35 @@ def main() -> None:
             else "not under 5% at any length (steady >= 5%)"
         )
         print(f"c={row['concurrency']:.0f}: fixed start-up + tail {fixed:.1f} s; {verdict}")
+
+
+@contextlib.contextmanager
+def ray_head(tmp: Path) -> Iterator[str]:
+    """`ray start --head` as docs/cluster.md starts it, on a free port and with token
+    authentication; yields its address, then stops it (only it: `ray stop` would stop every
+    Ray on the machine)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    ray_cli, cpus = Path(sys.executable).with_name("ray"), os.cpu_count()
+    log = (tmp / "ray_head.log").open("w")
+    head = subprocess.Popen(
+        [str(ray_cli), "start", "--head", "--block", f"--port={port}", f"--num-cpus={cpus}"],
+        env={**os.environ, **HEAD_ENV},
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while "Ray runtime started" not in (tmp / "ray_head.log").read_text():
+            if head.poll() is not None or time.monotonic() > deadline:
+                sys.exit(f"ray start --head failed:\n{(tmp / 'ray_head.log').read_text()}")
+            time.sleep(0.2)
+        yield f"127.0.0.1:{port}"
+    finally:
+        head.terminate()
+        head.wait(timeout=60)
+        log.close()
 
 
 def print_row(label: str, row: dict[str, float]) -> None:
