@@ -151,8 +151,8 @@ def main() -> None:
         choices=("both", "head", "local"),
         default="both",
         help="head: every launch joins one `ray start --head` that the benchmark starts first "
-        "(a one-node cluster, as on a cluster); local: every launch starts and stops its own "
-        "Ray; both (default): head, then local",
+        "(a one-node cluster: what a launch on a running cluster pays); local: every launch "
+        "starts and stops its own Ray; both (default): head, then local",
     )
     parser.add_argument(
         "--address",
