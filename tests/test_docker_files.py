@@ -10,9 +10,11 @@ import json
 import os
 import re
 import shutil
+import signal
 import sqlite3
 import subprocess
 import sys
+import time
 import zipfile
 from pathlib import Path
 
@@ -285,25 +287,49 @@ def test_gpu_override_gives_the_workers_gpus(env_file):
     assert "gpus" not in services["ray-head"]
 
 
+def stand_ins(folder: Path, sweeper_body: str = "") -> Path:
+    """`ray` and `sweeper` scripts in ``folder`` that log their arguments (one line per call,
+    tab-separated) to the returned file; ``sweeper_body`` then runs in the `sweeper` one."""
+    log = folder / "calls.log"
+    for name, body in (("ray", ""), ("sweeper", sweeper_body)):
+        stand_in = folder / name
+        stand_in.write_text(
+            f'#!/bin/sh\n{{ for a in {name} "$@"; do printf "%s\\t" "$a"; done; echo; }} >> {log}\n'
+            + body
+        )
+        stand_in.chmod(0o755)
+    return log
+
+
+def calls(log: Path) -> list[list[str]]:
+    return [line.split("\t")[:-1] for line in log.read_text().splitlines()]
+
+
+def launch_entrypoint(config) -> list[str]:
+    return [word.replace("$$", "$") for word in config["services"]["launch"]["entrypoint"]]
+
+
+def launch_env(config, stand_ins_folder: Path) -> dict[str, str]:
+    environment = config["services"]["launch"]["environment"]
+    return {"PATH": f"{stand_ins_folder}:/usr/bin:/bin", **environment}
+
+
 def test_launch_joins_the_cluster_then_runs_sweeper_launch(config, tmp_path):
     """Run the launch entrypoint's shell script with stand-ins for `ray` and `sweeper` that
     log their arguments, then parse those with the real `sweeper launch` parser."""
     from sweeper.cli import build_parser
 
     launch = config["services"]["launch"]
-    log = tmp_path / "calls.log"
-    for name in ("ray", "sweeper"):
-        stand_in = tmp_path / name
-        stand_in.write_text(
-            f'#!/bin/sh\n{{ for a in {name} "$@"; do printf "%s\\t" "$a"; done; echo; }} >> {log}\n'
-        )
-        stand_in.chmod(0o755)
-    entrypoint = [word.replace("$$", "$") for word in launch["entrypoint"]]  # as compose runs it
-    env = {"PATH": f"{tmp_path}:/usr/bin:/bin", **launch["environment"]}
+    log = stand_ins(tmp_path)
     spec = ["studies/fetch_reach.yaml", "--max-concurrent", "3"]  # docker compose run launch ...
-    subprocess.run([*entrypoint, *spec], env=env, check=True, timeout=10)
+    subprocess.run(
+        [*launch_entrypoint(config), *spec],
+        env=launch_env(config, tmp_path),
+        check=True,
+        timeout=10,
+    )
 
-    ray_call, sweeper_call = (line.split("\t")[:-1] for line in log.read_text().splitlines())
+    ray_call, sweeper_call, stop_call = calls(log)
     # A Ray driver needs a raylet on its own host: it joins as a node that takes no trials.
     assert ray_call[:4] == ["ray", "start", "--address=ray-head:6379", "--num-cpus=0"]
     assert ray_call[4:] == ["--object-store-memory=1000000000"]  # the default, below shm_size
@@ -312,6 +338,38 @@ def test_launch_joins_the_cluster_then_runs_sweeper_launch(config, tmp_path):
     assert args.address == "ray-head:6379" and args.max_concurrent == 3
     assert args.storage == config["services"]["dashboard"]["command"][-1]  # the same database
     assert (REPO / launch["command"][0]).is_file(), "the default spec exists"
+    assert stop_call == ["ray", "stop"], "the node leaves the cluster once sweeper is done"
+
+
+@pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM"])  # Ctrl-C, `docker stop`
+def test_stopping_launch_reaches_sweeper_then_leaves_the_cluster(config, tmp_path, signal_name):
+    """The entrypoint's shell passes Ctrl-C or `docker stop` on to `sweeper launch` as
+    SIGTERM (which it handles like Ctrl-C), then stops its Ray node and exits with
+    sweeper's code."""
+    started = tmp_path / "started"
+    log = stand_ins(
+        tmp_path,
+        f"trap 'echo TERM >> {tmp_path / 'signals'}; exit 130' TERM\n"
+        f"touch {started}\nwhile :; do sleep 0.05; done\n",
+    )
+    shell = subprocess.Popen(
+        [*launch_entrypoint(config), "studies/ci.yaml"], env=launch_env(config, tmp_path)
+    )
+    try:
+        deadline = time.monotonic() + 10
+        while not started.exists():
+            assert time.monotonic() < deadline, "the sweeper stand-in never started"
+            time.sleep(0.02)
+        shell.send_signal(getattr(signal, signal_name))
+        assert shell.wait(timeout=10) == 130
+    finally:
+        shell.kill()
+    assert (tmp_path / "signals").read_text() == "TERM\n"
+    assert [call[:2] for call in calls(log)] == [
+        ["ray", "start"],
+        ["sweeper", "launch"],
+        ["ray", "stop"],
+    ]
 
 
 def test_dashboard_creates_the_study_tables_then_runs_its_command(config, tmp_path):
