@@ -223,7 +223,8 @@ def ray_head(tmp: Path) -> Iterator[str]:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     ray_cli, cpus = Path(sys.executable).with_name("ray"), os.cpu_count()
-    log = (tmp / "ray_head.log").open("w")
+    log_path = tmp / "ray_head.log"
+    log = log_path.open("w")
     head = subprocess.Popen(
         [str(ray_cli), "start", "--head", "--block", f"--port={port}", f"--num-cpus={cpus}"],
         env={**os.environ, **HEAD_ENV},
@@ -232,9 +233,9 @@ def ray_head(tmp: Path) -> Iterator[str]:
     )
     try:
         deadline = time.monotonic() + 60
-        while "Ray runtime started" not in (tmp / "ray_head.log").read_text():
+        while "Ray runtime started" not in log_path.read_text():
             if head.poll() is not None or time.monotonic() > deadline:
-                sys.exit(f"ray start --head failed:\n{(tmp / 'ray_head.log').read_text()}")
+                sys.exit(f"ray start --head failed:\n{log_path.read_text()}")
             time.sleep(0.2)
         yield f"127.0.0.1:{port}"
     finally:

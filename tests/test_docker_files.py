@@ -305,8 +305,9 @@ def calls(log: Path) -> list[list[str]]:
     return [line.split("\t")[:-1] for line in log.read_text().splitlines()]
 
 
-def launch_entrypoint(config) -> list[str]:
-    return [word.replace("$$", "$") for word in config["services"]["launch"]["entrypoint"]]
+def entrypoint(config, service: str) -> list[str]:
+    """The service's entrypoint as compose runs it (``$$`` escapes a ``$`` in the file)."""
+    return [word.replace("$$", "$") for word in config["services"][service]["entrypoint"]]
 
 
 def launch_env(config, stand_ins_folder: Path) -> dict[str, str]:
@@ -323,7 +324,7 @@ def test_launch_joins_the_cluster_then_runs_sweeper_launch(config, tmp_path):
     log = stand_ins(tmp_path)
     spec = ["studies/fetch_reach.yaml", "--max-concurrent", "3"]  # docker compose run launch ...
     subprocess.run(
-        [*launch_entrypoint(config), *spec],
+        [*entrypoint(config, "launch"), *spec],
         env=launch_env(config, tmp_path),
         check=True,
         timeout=10,
@@ -353,7 +354,7 @@ def test_stopping_launch_reaches_sweeper_then_leaves_the_cluster(config, tmp_pat
         f"touch {started}\nwhile :; do sleep 0.05; done\n",
     )
     shell = subprocess.Popen(
-        [*launch_entrypoint(config), "studies/ci.yaml"], env=launch_env(config, tmp_path)
+        [*entrypoint(config, "launch"), "studies/ci.yaml"], env=launch_env(config, tmp_path)
     )
     try:
         deadline = time.monotonic() + 10
@@ -375,13 +376,11 @@ def test_stopping_launch_reaches_sweeper_then_leaves_the_cluster(config, tmp_pat
 def test_dashboard_creates_the_study_tables_then_runs_its_command(config, tmp_path):
     """optuna-dashboard exits on a database without Optuna's tables, so the dashboard's
     entrypoint creates them first (as the driver would), then execs its command."""
-    dashboard = config["services"]["dashboard"]
-    entrypoint = [word.replace("$$", "$") for word in dashboard["entrypoint"]]
     database, served = tmp_path / "fresh.db", tmp_path / "served"
     # stands in for `optuna-dashboard ... URL`: the URL is the last argument, as in compose
     command = [sys.executable, "-c", f"open({str(served)!r}, 'w')", f"sqlite:///{database}"]
     env = {"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin"}  # `python` with the project
-    subprocess.run([*entrypoint, *command], env=env, check=True, timeout=60)
+    subprocess.run([*entrypoint(config, "dashboard"), *command], env=env, check=True, timeout=60)
     assert served.exists()
     with sqlite3.connect(database) as connection:
         tables = {row[0] for row in connection.execute("SELECT name FROM sqlite_master")}
