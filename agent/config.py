@@ -67,14 +67,23 @@ class SACConfig:
                "an integer >= 1", self.num_filters)  # fmt: skip
 
 
+#: methods that train on the env's true reward instead of an encoder's: the state oracle
+#: (SAC on true states and goals: the learner's ceiling) and the image-observation control
+#: (images in, true reward: can the agent learn from pixels here, whatever the reward?)
+TRUE_REWARD_METHODS = ("state", "true_reward")
+
+
 @dataclass(frozen=True)
 class TrialConfig:
     """Everything one trial needs; a plain value, so it pickles to a Ray actor.
 
-    ``method`` is an encoder registry name, or "state" for the state oracle (SAC on
-    true states and goals, reward = the env's true reward). ``encoder_params`` are the
-    method's own hyperparameters (latent size, VAE beta, ...). Checkpoints are written at
-    the first episode end at least ``checkpoint_every`` env steps after the previous one.
+    ``method`` is an encoder registry name or one of ``TRUE_REWARD_METHODS``.
+    ``encoder_params`` are the method's own hyperparameters (latent size, VAE beta, ...).
+    ``reward_scale`` multiplies the reward: a positive number, or "auto" for 1 / the mean
+    distance (under the method's own reward) between a random policy's frames and their
+    goals, measured before training, so every method's reward is about 1 in size.
+    Checkpoints are written at the first episode end at least ``checkpoint_every`` env
+    steps after the previous one.
     """
 
     env: str = "point_reach"
@@ -82,6 +91,7 @@ class TrialConfig:
     method: str = "pixel"
     encoder_params: dict[str, Any] = field(default_factory=dict)
     sac: SACConfig = field(default_factory=SACConfig)
+    reward_scale: float | Literal["auto"] = 1.0
     total_steps: int = 10_000
     seed_steps: int = 1_000  # uniform random actions before learning starts
     eval_every: int = 1_000
@@ -103,6 +113,13 @@ class TrialConfig:
             _check(_is_int(v) and v >= 0, name, "an integer >= 0", v)
         _check(self.image_size is None or _is_int(self.image_size), "image_size",
                "an integer or None", self.image_size)  # fmt: skip
+        scale = self.reward_scale
+        _check(
+            scale == "auto" or (_is_number(scale) and scale > 0),
+            "reward_scale",
+            "'auto' or a positive number",
+            scale,
+        )
         for name in ("encoder_params", "env_kwargs"):
             v = getattr(self, name)
             _check(isinstance(v, dict), name, "a dict", v)
@@ -129,7 +146,8 @@ class TrialResult:
     ``metrics[k][i]`` is metric ``k`` at env step ``steps[i]``. After a divergence the
     remaining grid points hold ``success_rate = 0`` and NaN for the other metrics.
     ``seconds`` is the wall time summed over every run of the trial (resumes included);
-    ``resumed_from`` the env step of the checkpoint this run started from, if any.
+    ``resumed_from`` the env step of the checkpoint this run started from, if any;
+    ``reward_scale`` the factor the reward was multiplied by (``"auto"`` resolved).
     """
 
     steps: tuple[int, ...]
@@ -140,3 +158,4 @@ class TrialResult:
     diverged_loss: str | None = None
     seconds: float = 0.0
     resumed_from: int | None = None
+    reward_scale: float = 1.0

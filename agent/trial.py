@@ -8,7 +8,10 @@ deterministic-policy episodes in a separate env on a fixed set of goals and call
 
 Rewards: an image method's reward ``-||phi(o') - phi(o_g)||`` is computed when the
 transition is stored (``phi(o_g)`` once per episode); the state oracle (``method="state"``)
-uses the env's true reward on state observations.
+uses the env's true reward on state observations, the image control
+(``method="true_reward"``) the env's true reward on image observations. Every reward is
+multiplied by the trial's reward scale (``TrialConfig.reward_scale``; "auto" is measured
+on a random policy's episodes before training).
 
 Checkpoints are written only at episode ends: the next thing the trial does is reset
 the env, so no mid-episode simulator state is needed, only the env's random generator.
@@ -35,7 +38,7 @@ import torch
 
 import encoders
 from agent import storage_io
-from agent.config import RUNTIME_FIELDS, TrialConfig, TrialResult
+from agent.config import RUNTIME_FIELDS, TRUE_REWARD_METHODS, TrialConfig, TrialResult
 from agent.envs import make_env
 from agent.envs.base import EPISODE_STEPS
 from agent.metrics import (
@@ -53,6 +56,8 @@ Report = Callable[[int, dict[str, float]], None]
 CHECKPOINT_NAME = "checkpoint.pt"
 CHECKPOINT_FORMAT = 1
 DEFAULT_NUM_IMAGES = 1000
+#: env steps of random policy measured for ``reward_scale="auto"`` (5 episodes, 5 goals)
+SCALE_STEPS = 5 * EPISODE_STEPS
 
 
 class Diverged(Exception):
@@ -74,9 +79,12 @@ def _uniform_action(env: Any, rng: np.random.Generator) -> np.ndarray:
 
 
 def build_encoder(config: TrialConfig, image_size: int, device: torch.device) -> Any:
-    """The trial's reward encoder, fitted on random-policy frames when it learns."""
+    """The trial's reward encoder, fitted on random-policy frames when it learns; None for
+    the methods that use the true reward."""
+    if config.method in TRUE_REWARD_METHODS:
+        return None
     if config.method not in encoders.encoder_names():
-        names = ", ".join((*encoders.encoder_names(), "state"))
+        names = ", ".join((*encoders.encoder_names(), *TRUE_REWARD_METHODS))
         raise ValueError(f"method must be one of {names}; got {config.method!r}")
     shape = (image_size, image_size, 3)
     encoder = encoders.make_encoder(
@@ -103,6 +111,39 @@ def collect_random_images(config: TrialConfig, num_images: int) -> np.ndarray:
             if terminated or truncated:
                 obs, _ = env.reset()
     return np.stack(frames)
+
+
+def measure_reward_scale(config: TrialConfig, encoder: Any) -> float:
+    """``config.reward_scale``, with "auto" resolved to 1 / the mean distance to the goal
+    (the negated reward before scaling) over ``SCALE_STEPS`` steps of a random policy."""
+    if config.reward_scale != "auto":
+        return float(config.reward_scale)
+    rng = np.random.default_rng(_seed(config.seed, 4))
+    obs_mode = "image" if encoder is not None else "state"
+    make = dict(image_size=config.image_size, obs_mode=obs_mode, **config.env_kwargs)
+    distances: list[np.ndarray] = []
+    with contextlib.closing(make_env(config.env, **make)) as env:
+        env.reset(seed=_seed(config.seed, 5))
+        while len(distances) < SCALE_STEPS // EPISODE_STEPS:
+            obs, _ = env.reset()
+            frames, true_distances, done = [], [], False
+            while not done:
+                obs, reward, terminated, truncated, _ = env.step(_uniform_action(env, rng))
+                frames.append(obs.get("image"))
+                true_distances.append(-reward)
+                done = terminated or truncated
+            if encoder is None:
+                distances.append(np.asarray(true_distances))
+            else:
+                goal = encoder.encode(obs["goal_image"][None])
+                distances.append(-encoders.latent_reward(encoder.encode(np.stack(frames)), goal))
+    mean = float(np.mean(np.concatenate(distances)))
+    if not mean > 0:
+        raise ValueError(
+            f"reward_scale='auto': the mean distance to the goal under {config.method!r} is "
+            f"{mean} on a random policy; give reward_scale as a number"
+        )
+    return 1.0 / mean
 
 
 def evaluate(agent: SAC, env: Any, seeds: list[int], keys: tuple[str, str]) -> dict[str, float]:
@@ -218,9 +259,9 @@ def _run(
 ) -> TrialResult:
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(_seed(config.seed, 0))  # random actions, replay sampling
-    state_mode = config.method == "state"
-    keys = ("state", "goal_state") if state_mode else ("image", "goal_image")
-    encoder = None if state_mode else build_encoder(config, env.image_size, device)
+    keys = ("state", "goal_state") if config.method == "state" else ("image", "goal_image")
+    encoder = build_encoder(config, env.image_size, device)
+    scale = measure_reward_scale(config, encoder)
     env.reset(seed=_seed(config.seed, 1))  # seeds the env's generator; episodes reset() below
     eval_seeds = [_seed(config.seed, 100 + i) for i in range(config.eval_episodes)]
     obs_space, goal_space = env.observation_space[keys[0]], env.observation_space[keys[1]]
@@ -300,7 +341,7 @@ def _run(
             if encoder is not None:
                 latent = encoder.encode(obs[keys[0]][None])
                 reward = float(encoders.latent_reward(latent, goal_latent)[0])
-            replay.add(action, reward, obs[keys[0]])
+            replay.add(action, scale * reward, obs[keys[0]])
             step += 1
 
             if step >= config.seed_steps:
@@ -334,4 +375,5 @@ def _run(
         diverged_loss=diverged.loss if diverged else None,
         seconds=seconds_before + time.perf_counter() - start,
         resumed_from=resumed_from,
+        reward_scale=scale,
     )

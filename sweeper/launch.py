@@ -398,6 +398,7 @@ def _record_result(store: StudyStore, job: _Job, result: Any) -> None:
         "curve": job.curve(),
         "seconds": float(result.seconds),
         "resumed_from": result.resumed_from,
+        "reward_scale": result.reward_scale,
     }
     if result.outcome == "diverged":
         attrs["diverged_step"] = result.diverged_step

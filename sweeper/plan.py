@@ -81,6 +81,7 @@ def build_plan(spec: StudySpec) -> Plan:
                     method=method,
                     encoder_params=dict(options),
                     sac=SACConfig(**sac),
+                    reward_scale=spec.reward_scale,
                     total_steps=spec.budget.env_steps,
                     seed_steps=spec.budget.seed_steps,
                     eval_every=spec.budget.eval_every,

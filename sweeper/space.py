@@ -6,7 +6,7 @@ param (fixed ones with a one-choice distribution) so the dashboard shows all of 
 
 SAC defaults are the thesis appendix A.1. Method defaults:
 
-- ``pixel``, ``state``: no options.
+- ``pixel``, ``state``, ``true_reward``: no options.
 - ``linear``, ``conv``: ``latent_dim`` 128 | 256 (appendix A.1).
 - ``vae``, ``cvae``: ``latent_dim`` 8 | 16 (appendix A.1); ``beta`` 1 | 5 | 20 (from plain
   VAE to the strong bottleneck RIG-style reward encoders use); ``lr`` 1e-3 | 3e-4 (Adam's
@@ -49,6 +49,7 @@ SAC_DEFAULTS: dict[str, tuple[Any, ...]] = {
 METHOD_DEFAULTS: dict[str, dict[str, tuple[Scalar, ...]]] = {
     "pixel": {},
     "state": {},
+    "true_reward": {},
     "linear": {"latent_dim": (128, 256)},
     "conv": {"latent_dim": (128, 256)},
     "vae": {

@@ -35,6 +35,7 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    PlainValidator,
     Strict,
     ValidationError,
     field_validator,
@@ -42,6 +43,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from agent.config import TRUE_REWARD_METHODS
 from sweeper.space import (
     METHOD_DEFAULTS,
     OPTION_BOUNDS,
@@ -51,7 +53,6 @@ from sweeper.space import (
     Scalar,
 )
 
-STATE_METHOD = "state"
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 _URL_RE = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 
@@ -193,6 +194,17 @@ SizeChoices = _choices(Sizes, _as_size_choices)
 PosIntChoices = _choices(PosInt)
 NonNegIntChoices = _choices(NonNegInt)
 PosFloatChoices = _choices(PosFloat)
+
+
+def _reward_scale(value: Any) -> str | float:
+    if value == "auto":
+        return value
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < math.inf:
+        raise _error(f"must be 'auto' or a positive number, got {value!r}")
+    return float(value)
+
+
+RewardScale = Annotated[str | float, PlainValidator(_reward_scale)]
 UnitFloatChoices = _choices(UnitFloat)
 
 
@@ -256,10 +268,11 @@ def _option_choices(raw: Any, like: Any, at: str, bounds: tuple[float, bool] | N
 
 
 def method_names() -> tuple[str, ...]:
-    """Methods a spec may name: the encoder registry's names and ``"state"`` (the oracle)."""
+    """Methods a spec may name: the encoder registry's names and the true-reward controls
+    (``agent.config.TRUE_REWARD_METHODS``: the state oracle and the image control)."""
     from encoders import encoder_names
 
-    return (*encoder_names(), STATE_METHOD)
+    return (*encoder_names(), *TRUE_REWARD_METHODS)
 
 
 def _method_space(name: str, options: Any) -> dict[str, tuple[Scalar, ...]]:
@@ -271,7 +284,7 @@ def _method_space(name: str, options: Any) -> dict[str, tuple[Scalar, ...]]:
         options = {}
     if not isinstance(options, dict):
         raise _error(f"must be a mapping of options (or {{}} for the defaults), got {options!r}")
-    accepted = {} if name == STATE_METHOD else encoder_options(name)
+    accepted = {} if name in TRUE_REWARD_METHODS else encoder_options(name)
     defaults = METHOD_DEFAULTS.get(name, {})
     for key in options:
         if key not in accepted:
@@ -447,6 +460,11 @@ class StudySpec(_Strict):
         tuple[SeedInt, ...], BeforeValidator(_as_choices), AfterValidator(_distinct)
     ] = (0,)
     sac: SACSpace = SACSpace()
+    reward_scale: RewardScale = Field(
+        "auto",
+        description="'auto' (each trial's reward divided by its mean random-policy distance to "
+        "the goal, so every method's reward is about 1) or a positive factor",
+    )
     budget: Budget = Field(description="a mapping with env_steps (required), seed_steps, ...")
     storage: str | None = Field(None, description="an SQLAlchemy URL; null: SQLite under runs/")
     checkpoints: str | None = Field(None, description="checkpoint directory; null: under runs/")

@@ -74,6 +74,55 @@ def test_state_oracle_runs() -> None:
     assert result.steps == (0, 100, 200) and result.outcome == "completed"
 
 
+def stored(config: TrialConfig) -> tuple[list[float], tuple[int, ...]]:
+    """The rewards a trial stores in its replay, in order, and its observations' shape."""
+    from agent import trial
+
+    rewards: list[float] = []
+    shapes: set[tuple[int, ...]] = set()
+    real_add = trial.ReplayBuffer.add
+
+    def add(self, action, reward, next_obs):
+        rewards.append(reward)
+        shapes.add(next_obs.shape)
+        return real_add(self, action, reward, next_obs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(trial.ReplayBuffer, "add", add)
+        agent.train(config)
+    (shape,) = shapes
+    return rewards, shape
+
+
+def test_true_reward_control_learns_from_images_with_the_true_reward() -> None:
+    config = tiny(method="true_reward", total_steps=50, seed_steps=50, eval_every=50)
+    result = agent.train(config)
+    assert result.steps == (0, 50) and result.reward_scale == 1.0
+    # the env's own true rewards of the same random episode as the state oracle's, on images
+    rewards, shape = stored(config)
+    oracle_rewards, oracle_shape = stored(dataclasses.replace(config, method="state"))
+    assert rewards == oracle_rewards and all(r < 0 for r in rewards)
+    assert shape == (32, 32, 3) and oracle_shape == (2,)
+
+
+@pytest.mark.parametrize("method", ["pixel", "true_reward"])
+def test_auto_reward_scale_makes_random_policy_rewards_about_one(method) -> None:
+    config = tiny(method=method, total_steps=200, seed_steps=200, eval_every=200)
+    unscaled, _ = stored(config)
+    scaled, _ = stored(dataclasses.replace(config, reward_scale="auto"))
+    factor = agent.train(dataclasses.replace(config, reward_scale="auto")).reward_scale
+    assert scaled == pytest.approx([factor * r for r in unscaled])
+    assert 0.5 < -sum(scaled) / len(scaled) < 2.0  # another random episode, same size
+    if method == "pixel":  # pixel distances are far from 1 unscaled
+        assert -sum(unscaled) / len(unscaled) > 3.0
+
+
+def test_bad_reward_scale() -> None:
+    for bad in (0, -1.0, "big", float("nan"), True):
+        with pytest.raises(ValueError, match="reward_scale"):
+            tiny(reward_scale=bad)
+
+
 def test_divergence_stops_the_trial_and_fills_the_grid(monkeypatch: pytest.MonkeyPatch) -> None:
     from agent import sac
 

@@ -104,6 +104,20 @@ def test_launch_ci_end_to_end_then_status_and_resume(tmp_path, monkeypatch, caps
     assert [(t.number, t.datetime_complete) for t in load(url).get_trials()] == before
 
 
+def test_the_image_control_and_the_oracle_are_methods_like_any_other(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    spec = write_spec(tmp_path / "controls.yaml", methods={"true_reward": {}, "state": {}})
+    assert cli.main(["launch", str(spec)]) == 0
+    trials = load("sqlite:///runs/ci/study.db").get_trials()
+    assert sorted(t.user_attrs["key"] for t in trials) == ["state/0/0", "true_reward/0/0"]
+    for trial in trials:
+        assert trial.state == TrialState.COMPLETE and trial.user_attrs["curve"]["step"] == GRID
+        assert trial.user_attrs["reward_scale"] > 0  # the spec's default: "auto", measured
+    assert cli.main(["aggregate", str(spec)]) == 0
+    table = (tmp_path / "runs" / "ci" / "aggregate" / "auc_table.csv").read_text()
+    assert "true_reward" in table and "state" in table
+
+
 def test_launch_on_postgresql(tmp_path):
     schema = f"sweeper_test_{uuid.uuid4().hex[:10]}"
     with psycopg.connect(PG_ADMIN, autocommit=True) as connection:

@@ -92,6 +92,8 @@ def test_defaults_and_properties():
     assert spec.trials_per_method_total == 4
     assert spec.execution.address is None and spec.execution.max_concurrent == 2
     assert spec.sac.space() == SAC_DEFAULTS
+    assert spec.reward_scale == "auto"
+    assert parse_spec({**copy.deepcopy(BASE), "reward_scale": 1}).reward_scale == 1.0
     with pytest.raises(Exception, match="frozen"):
         spec.study = "other"
 
@@ -121,6 +123,15 @@ def test_overrides_are_validated():
         spec.with_overrides(max_concurrent=0)
     with pytest.raises(SpecError, match="storage"):
         spec.with_overrides(storage="not a url")
+
+
+def test_true_reward_controls_are_methods_without_options():
+    data = copy.deepcopy(BASE)
+    data["methods"] = {"true_reward": {}, "state": None, "pixel": {}}
+    assert parse_spec(data).methods == {"true_reward": {}, "state": {}, "pixel": {}}
+    data["methods"] = {"true_reward": {"latent_dim": 8}}
+    with pytest.raises(SpecError, match=r"methods\.true_reward\.latent_dim.*allowed: none"):
+        parse_spec(data)
 
 
 def test_method_spaces_merge_defaults_and_encoder_options():
@@ -294,6 +305,8 @@ BAD_SPECS = [
         "valid integer",
     ),
     ("ragged grid", spec_text(_set("budget.eval_every", 300)), "budget.eval_every", "divide"),
+    ("reward scale text", spec_text(_set("reward_scale", "big")), "reward_scale", "'auto' or a"),
+    ("reward scale zero", spec_text(_set("reward_scale", 0)), "reward_scale", "positive number"),
     (
         "seed steps too many",
         spec_text(_set("budget.seed_steps", 1000)),

@@ -190,6 +190,15 @@ def check_vector(value: Any, size: int, name: str) -> np.ndarray:
     return v
 
 
+def check_margin(margin: Any) -> float | None:
+    """``workspace_margin`` as a float in [0, 0.5] m, or None (no bounds); else a ValueError."""
+    if margin is None:
+        return None
+    if isinstance(margin, bool) or not isinstance(margin, numbers.Real) or not 0 <= margin <= 0.5:
+        raise ValueError(f"workspace_margin must be None or a number in [0, 0.5] m, got {margin!r}")
+    return float(margin)
+
+
 class MujocoGoalImageEnv(GoalImageEnv):
     """A GoalImageEnv on one MuJoCo model: the renderer is made on the first frame (never
     in state mode), and the goal image is rendered by moving the sim to the goal with

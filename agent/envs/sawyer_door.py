@@ -5,7 +5,7 @@ directly). Only its model, data, hand reset and hand box are used; stepping, goa
 and rendering are ours (metaworld's step needs a task and renders at its own size):
 
 - action: 3-D hand displacement in [-1, 1] x ``action_scale`` m per step, applied to
-  the mocap that drives the hand (clipped to metaworld's hand box), ``frame_skip``
+  the mocap that drives the hand (clipped to ``hand_bounds()``), ``frame_skip``
   physics steps of 2.5 ms per env step; the gripper stays closed. Defaults: 3 cm per
   25 ms (Fetch: 5 cm per 40 ms). metaworld's 1 cm per 12.5 ms is too slow to reach the
   handle, open the door and move the hand away within 50 steps.
@@ -17,6 +17,10 @@ and rendering are ours (metaworld's step needs a task and renders at its own siz
   contacts on 200 samples), angle in [-0.5, 0]. ``benchmarks/bench_envs.py`` runs a
   scripted hook-pull-and-move policy to show the goals can be reached in 50 steps.
 - success: |angle - goal angle| < 0.02 rad and ||hand - goal hand|| < 0.03 m.
+- workspace bounds, as multiworld bounds RIG's Sawyer hand (hand_low/hand_high): the mocap
+  is clipped to ``HAND_TASK_LOW``..``HAND_TASK_HIGH`` (the goal box and the door handle's
+  reach, approached from above) widened by ``workspace_margin`` (default 5 cm), inside
+  metaworld's own hand box; ``workspace_margin=None`` gives metaworld's box alone.
 """
 
 from __future__ import annotations
@@ -35,6 +39,10 @@ HAND_SUCCESS = 0.03  # m
 #: goal box: hand x, y, z (m), door angle (rad)
 GOAL_LOW = np.array([-0.15, 0.45, 0.10, -0.5])
 GOAL_HIGH = np.array([0.10, 0.55, 0.25, 0.0])
+#: where the hand must be able to go: the goal box's hand part and the handle's hook point
+#: (0.33, 0.80, 0.19) from above (see benchmarks/bench_envs.py's scripted policy)
+HAND_TASK_LOW = np.array([-0.15, 0.45, 0.10])
+HAND_TASK_HIGH = np.array([0.35, 0.80, 0.31])
 DOOR_POSITION = (0.1, 0.95, 0.15)  # metaworld's init_config["obj_init_pos"]
 GRIPPER_CLOSED = (1.0, -1.0)  # ctrl of the two finger actuators
 _DRIVE_SUBSTEPS = 10
@@ -70,12 +78,14 @@ class SawyerDoorImageEnv(mj.MujocoGoalImageEnv):
         camera: str | Mapping[str, Any] | None = None,
         action_scale: float = 0.03,
         frame_skip: int = 10,
+        workspace_margin: float | None = 0.05,
     ) -> None:
         if not 0 < action_scale <= 0.1:
             raise ValueError(f"action_scale must be in (0, 0.1] m, got {action_scale}")
         if isinstance(frame_skip, bool) or not isinstance(frame_skip, int) or frame_skip < 1:
             raise ValueError(f"frame_skip must be an integer >= 1, got {frame_skip!r}")
         super().__init__(image_size=image_size, obs_mode=obs_mode, render_mode=render_mode)
+        self.workspace_margin = mj.check_margin(workspace_margin)
         from metaworld.envs.sawyer_door_v3 import SawyerDoorEnvV3
 
         self._sim = SawyerDoorEnvV3(render_mode=None)  # its renderer is never used
@@ -115,8 +125,18 @@ class SawyerDoorImageEnv(mj.MujocoGoalImageEnv):
 
     def _apply_action(self, action: np.ndarray) -> None:
         target = self.data.mocap_pos[0] + self.action_scale * action
-        self.data.mocap_pos[0] = np.clip(target, self._sim.mocap_low, self._sim.mocap_high)
+        self.data.mocap_pos[0] = np.clip(target, *self.hand_bounds())
         self._physics_step()
+
+    def hand_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The box the hand's mocap is clipped to (see the module docstring)."""
+        low, high = self._sim.mocap_low, self._sim.mocap_high
+        if self.workspace_margin is None:
+            return low.copy(), high.copy()
+        return (
+            np.maximum(low, HAND_TASK_LOW - self.workspace_margin),
+            np.minimum(high, HAND_TASK_HIGH + self.workspace_margin),
+        )
 
     def _task_state(self) -> np.ndarray:
         return self.controllable_state()
