@@ -6,14 +6,20 @@
 For each env it writes, under ``--out`` (default ``runs/diagnostics/{env}``), one tidy CSV
 per analysis (``env, encoder, metric, value, ...``), a PNG figure each, and
 ``summary.csv`` with the headline figures. Learned encoders are first fit on
-``num_images`` frames of a uniformly random policy in the env. Heavy imports happen in
-``run`` so ``sweeper --help`` stays light.
+``num_images`` frames of a uniformly random policy in the env. Algorithm 1 and the
+correlation draw (state, goal) pairs from the env's reset (``--start reset``, the
+algorithm) or uniformly from its state box (``--start uniform``); near goals are kept
+unless ``--min-goal-distance`` asks otherwise. Both settings are written into the
+gradient and correlation CSVs and the summary. Every analysis starts from a freshly reset
+env, so the order they run in changes nothing. Heavy imports happen in ``run`` so
+``sweeper --help`` stays light.
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -21,6 +27,10 @@ from typing import Any
 ANALYSES = ("exploration", "gradient", "correlation", "topology", "variance")
 #: envs with an object and an arm that moves alone: the variance analysis runs on these
 ARM_OBJECT_ENVS = ("fetch_push",)
+#: summary.csv; ``start`` is set on the rows of the analyses that draw (state, goal) pairs
+SUMMARY_COLUMNS = ["env", "analysis", "encoder", "metric", "value", "start"]
+#: ``encoders.diagnostics.START_MODES``, spelled out so ``--help`` imports nothing heavy
+START_MODES = ("reset", "uniform")
 
 
 class UsageError(ValueError):
@@ -55,6 +65,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gradient-states", type=int, default=50, help="Algorithm 1 states")
     parser.add_argument("--directions", type=int, default=16, help="Algorithm 1 directions")
     parser.add_argument("--alpha", type=float, default=0.03, help="Algorithm 1 step size")
+    parser.add_argument(
+        "--start",
+        choices=START_MODES,
+        default="reset",
+        help="where Algorithm 1 and the correlation draw (state, goal) pairs: reset = the "
+        "env's reset (its start and goal distributions, as Algorithm 1 says); uniform = both "
+        "uniform in the env's state box",
+    )
+    parser.add_argument(
+        "--min-goal-distance",
+        type=float,
+        default=0.0,
+        help="Algorithm 1: redraw pairs whose goal is closer than this to the start (0: keep "
+        "every pair); recorded in gradient.csv and summary.csv when used",
+    )
     parser.add_argument("--pairs", type=int, default=300, help="(state, goal) pairs")
     parser.add_argument("--grid-size", type=int, default=15, help="topology grid side")
     parser.add_argument(
@@ -125,6 +150,8 @@ def check_sizes(args: argparse.Namespace) -> None:
         raise UsageError("--grid-size must be at least 5")
     if not args.alpha > 0:
         raise UsageError("--alpha must be positive")
+    if not 0 <= args.min_goal_distance < math.inf:
+        raise UsageError("--min-goal-distance must be finite and at least 0")
 
 
 def setup(args: argparse.Namespace) -> tuple[list[str], list[tuple[str, Any, dict, Path]]]:
@@ -217,46 +244,43 @@ def diagnose_env(
         plots.plot_exploration(t, out / "exploration.png", f"{env_name}: random agent")
         summary.append(t.assign(analysis="exploration"))
     if "gradient" in todo:
-        t = write(
-            dx.gradient_agreement(
-                env,
-                encoders,
-                args.gradient_states,
-                args.directions,
-                args.alpha,
-                seed=args.seed,
-                progress=progress,
-            ),
-            "gradient",
+        t = dx.gradient_agreement(
+            env,
+            encoders,
+            args.gradient_states,
+            args.directions,
+            args.alpha,
+            seed=args.seed,
+            start=args.start,
+            min_goal_distance=args.min_goal_distance,
+            progress=progress,
         )
+        write(t.assign(start=args.start), "gradient")
         plots.plot_gradient(
-            t, out / "gradient.png", f"{env_name}: latent vs true reward gradient (Algorithm 1)"
+            t,
+            out / "gradient.png",
+            f"{env_name}: latent vs true reward gradient (Algorithm 1, start {args.start})",
         )
-        means = t.groupby("encoder", sort=False)["value"].agg(["mean", "median"]).reset_index()
-        for stat in ("mean", "median"):
-            summary.append(
-                pd.DataFrame(
-                    {
-                        "env": env_name,
-                        "encoder": means["encoder"],
-                        "metric": f"{stat}_cosine_distance",
-                        "value": means[stat],
-                        "analysis": "gradient",
-                    }
-                )
-            )
+        s = dx.gradient_summary(t).assign(env=env_name, analysis="gradient", start=args.start)
+        summary.append(s)
     if "correlation" in todo:
         s, pairs = dx.reward_correlation(
-            env, encoders, args.pairs, seed=args.seed, progress=progress
+            env, encoders, args.pairs, seed=args.seed, start=args.start, progress=progress
         )
-        s, pairs = write(s, "correlation"), write(pairs, "correlation_pairs")
+        s = write(s.assign(start=args.start), "correlation")
+        pairs = write(pairs.assign(start=args.start), "correlation_pairs")
         plots.plot_correlation(
-            pairs, s, out / "correlation.png", f"{env_name}: latent vs true reward"
+            pairs,
+            s,
+            out / "correlation.png",
+            f"{env_name}: latent vs true reward, start {args.start}",
         )
         summary.append(s.assign(analysis="correlation"))
     if "topology" in todo:
         dims = grid_dims(args.grid_dims, tuple(env.state_names))
-        s, emb = dx.grid_topology(env, encoders, args.grid_size, dims, progress=progress)
+        s, emb = dx.grid_topology(
+            env, encoders, args.grid_size, dims, seed=args.seed, progress=progress
+        )
         s, emb = write(s, "topology"), write(emb, "topology_embedding")
         a, b = dims or dx.default_grid_dims(env)
         labels = (env.state_names[a], env.state_names[b])
@@ -306,7 +330,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"{env_name}: wrote {out}/")
             if frames:
                 summary = pd.concat(frames, ignore_index=True)
-                summary = summary[["env", "analysis", "encoder", "metric", "value"]]
+                summary = summary.reindex(columns=SUMMARY_COLUMNS)
                 summary.to_csv(out / "summary.csv", index=False)
                 print(summary.to_string(index=False))
     except ValueError as err:

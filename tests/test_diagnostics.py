@@ -28,6 +28,7 @@ class StripeEnv:
 
     def __init__(self, arm: bool = False, draw_arm: bool = True) -> None:
         self.state = np.zeros(3)
+        self.goal = np.zeros(3)
         self.arm = np.zeros(3)
         self.draw_arm = draw_arm
         self.action_space = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
@@ -60,6 +61,9 @@ class StripeEnv:
     def controllable_state(self) -> np.ndarray:
         return self.state.copy()
 
+    def goal_state(self) -> np.ndarray:
+        return self.goal.copy()
+
     def set_controllable_state(self, state) -> np.ndarray:
         self.state = np.clip(np.asarray(state, np.float64), 0, 1)
         return self.state.copy()
@@ -71,6 +75,32 @@ class StripeEnv:
         if self.draw_arm:
             image[3:6, :, 1] = np.floor(np.clip(self.arm, 0, 1)[:, None] * 250 + dither)
         return image
+
+
+class FarGoalEnv(StripeEnv):
+    """A StripeEnv whose reset starts in [0, 0.1]^3 and puts the goal in [0.9, 1]^3: pairs
+    from its reset are always more than ``FAR`` apart, uniform pairs rarely."""
+
+    FAR = 0.8 * np.sqrt(3)
+
+    def reset(self, *, seed: int | None = None):
+        rng = np.random.default_rng(seed)
+        self.state, self.goal = rng.uniform(0, 0.1, 3), rng.uniform(0.9, 1, 3)
+        return {}, {}
+
+
+class NearGoalEnv(StripeEnv):
+    """A StripeEnv whose reset puts the goal ``offset`` from the start along the first axis
+    (0: exactly at the start)."""
+
+    def __init__(self, offset: float) -> None:
+        super().__init__()
+        self.offset = offset
+
+    def reset(self, *, seed: int | None = None):
+        self.state = np.random.default_rng(seed).uniform(0.2, 0.8, 3)
+        self.goal = self.state + np.array([self.offset, 0.0, 0.0])
+        return {}, {}
 
 
 def pixel(shape=(32, 64, 3)):
@@ -111,10 +141,69 @@ def test_gradient_agreement_is_exact_when_the_image_shows_the_state() -> None:
 
 def test_gradient_agreement_on_point_reach_near_the_goal() -> None:
     env = make_env("point_reach", image_size=32, obs_mode="state")
-    table = dx.gradient_agreement(env, pixel((32, 32, 3)), num_states=60, progress=False)
+    table = dx.gradient_agreement(env, pixel((32, 32, 3)), num_states=150, progress=False)
     # the blob images overlap only near the goal: there the pixel reward points the right way
     near = table[table["distance"] < 0.5]
     assert len(near) >= 5 and near["value"].mean() < 0.1
+
+
+def test_gradient_agreement_draws_start_and_goal_from_the_env_reset() -> None:
+    kwargs = {"num_states": 12, "num_directions": 6, "alpha": 0.02, "progress": False}
+    reset = dx.gradient_agreement(FarGoalEnv(), pixel(), **kwargs)
+    assert (reset["distance"] > FarGoalEnv.FAR).all() and reset["value"].max() < 0.01
+    uniform = dx.gradient_agreement(FarGoalEnv(), pixel(), start="uniform", **kwargs)
+    assert (uniform["distance"] < FarGoalEnv.FAR).all()
+    with pytest.raises(ValueError, match="start must be one of reset, uniform"):
+        dx.gradient_agreement(FarGoalEnv(), pixel(), start="box")
+
+
+def test_gradient_agreement_keeps_near_goals() -> None:
+    # goals 1 cm from the start, inside the old hidden 4 * alpha filter: kept, not redrawn
+    table = dx.gradient_agreement(NearGoalEnv(0.01), pixel(), num_states=8, progress=False)
+    assert len(table) == 8 and "min_goal_distance" not in table
+    np.testing.assert_allclose(table["distance"], 0.01, atol=0.004)
+    assert table["value"].between(0, 2).all()
+
+
+def test_a_goal_at_the_start_is_nan_not_redrawn() -> None:
+    table = dx.gradient_agreement(NearGoalEnv(0.0), pixel(), num_states=4, progress=False)
+    assert len(table) == 4 and table["value"].isna().all() and (table["distance"] == 0).all()
+    summary = dx.gradient_summary(table).set_index("metric")["value"]
+    assert summary["undefined_samples"] == 4 and np.isnan(summary["mean_cosine_distance"])
+    assert np.isnan(dx.true_reward_gradient([1.0, 2.0], [1.0, 2.0])).all()
+    assert np.isnan(dx.cosine_distance(np.array([1.0, 0]), np.array([np.nan, np.nan])))
+
+
+def test_min_goal_distance_filters_and_is_reported() -> None:
+    env = StripeEnv()
+    table = dx.gradient_agreement(
+        env, pixel(), num_states=10, min_goal_distance=0.7, progress=False
+    )
+    assert len(table) == 10 and (table["distance"] >= 0.7).all()
+    assert (table["min_goal_distance"] == 0.7).all()
+    summary = dx.gradient_summary(table).set_index("metric")["value"]
+    assert summary["min_goal_distance"] == 0.7 and summary["undefined_samples"] == 0
+    with pytest.raises(ValueError, match=r"only 0 of 3 \(state, goal\) pairs in 300 draws"):
+        dx.gradient_agreement(env, pixel(), num_states=3, min_goal_distance=2.0, progress=False)
+    with pytest.raises(ValueError, match="min_goal_distance must be finite and >= 0"):
+        dx.gradient_agreement(env, pixel(), min_goal_distance=-0.1)
+
+
+def test_gradient_summary_by_hand() -> None:
+    table = pd.DataFrame(
+        {"encoder": ["a", "a", "a", "b"], "value": [0.1, 0.5, np.nan, 1.0], "distance": 1.0}
+    )
+    rows = dx.gradient_summary(table)
+    assert list(rows.columns) == ["encoder", "metric", "value"]
+    got = {(e, m): v for e, m, v in rows.itertuples(index=False)}
+    assert got == {
+        ("a", "mean_cosine_distance"): pytest.approx(0.3),
+        ("a", "median_cosine_distance"): pytest.approx(0.3),
+        ("a", "undefined_samples"): 1.0,
+        ("b", "mean_cosine_distance"): 1.0,
+        ("b", "median_cosine_distance"): 1.0,
+        ("b", "undefined_samples"): 0.0,
+    }
 
 
 # ---- the other analyses -----------------------------------------------------------------
@@ -134,6 +223,18 @@ def test_reward_correlation() -> None:
     assert values["pearson"] > 0.999 and values["spearman"] > 0.999
     assert list(pairs.columns) == ["encoder", "pair", "true_reward", "latent_reward"]
     assert len(pairs) == 50 and (pairs["true_reward"] <= 0).all()
+
+
+def test_reward_correlation_draws_pairs_from_the_env_reset() -> None:
+    _, reset = dx.reward_correlation(FarGoalEnv(), pixel(), num_pairs=20, progress=False)
+    assert (reset["true_reward"] < -FarGoalEnv.FAR).all()
+    _, uniform = dx.reward_correlation(
+        FarGoalEnv(), pixel(), num_pairs=20, start="uniform", progress=False
+    )
+    assert (uniform["true_reward"] > -FarGoalEnv.FAR).all()
+    # one start and one goal for every pair: the true reward is constant, no correlation
+    summary, _ = dx.reward_correlation(NearGoalEnv(0.0), pixel(), num_pairs=5, progress=False)
+    assert summary["value"].isna().all()
 
 
 def test_grid_topology() -> None:
@@ -189,6 +290,39 @@ def test_cli_writes_its_files(tmp_path, capsys) -> None:
     assert set(summary["encoder"]) == {"none", "pixel", "cvae"}
     assert "mean_cosine_distance" in set(summary["metric"])
     assert "point_reach: wrote" in capsys.readouterr().out
+    # Algorithm 1's defaults, recorded: pairs from the env's reset, no near-goal filter
+    gradient = pd.read_csv(out / "gradient.csv")
+    assert (gradient["start"] == "reset").all() and "min_goal_distance" not in gradient
+    drawn = summary["analysis"].isin(["gradient", "correlation"])
+    assert (summary.loc[drawn, "start"] == "reset").all()
+    assert summary.loc[~drawn, "start"].isna().all()  # the other analyses draw no pairs
+    assert "min_goal_distance" not in set(summary["metric"])
+
+
+def test_cli_start_and_min_goal_distance_are_recorded(tmp_path) -> None:
+    code = main(["diagnose", "--env", "point_reach", "--encoders", "pixel", "--image-size", "32",
+                 "--analyses", "gradient,correlation", "--start", "uniform",
+                 "--min-goal-distance", "0.5", "--out", str(tmp_path), *SMALL])  # fmt: skip
+    assert code == 0
+    gradient = pd.read_csv(tmp_path / "gradient.csv")
+    assert (gradient["start"] == "uniform").all() and (gradient["min_goal_distance"] == 0.5).all()
+    assert (gradient["distance"] >= 0.5).all()
+    assert (pd.read_csv(tmp_path / "correlation_pairs.csv")["start"] == "uniform").all()
+    summary = pd.read_csv(tmp_path / "summary.csv")
+    assert list(summary.columns) == ["env", "analysis", "encoder", "metric", "value", "start"]
+    assert (summary["start"] == "uniform").all()
+    rows = summary.set_index("metric")["value"]
+    assert rows["min_goal_distance"] == 0.5 and rows["undefined_samples"] == 0
+
+
+def test_cli_start_choices(capsys) -> None:
+    from sweeper import diagnose
+
+    assert diagnose.START_MODES == dx.START_MODES  # spelled out there to keep --help light
+    with pytest.raises(SystemExit) as exit_info:
+        main(["diagnose", "--env", "point_reach", "--start", "box"])
+    assert exit_info.value.code == 2
+    assert "invalid choice: 'box'" in capsys.readouterr().err
 
 
 def test_cli_on_fetch_push(tmp_path) -> None:
@@ -212,6 +346,8 @@ def test_cli_on_fetch_push(tmp_path) -> None:
         (["--analyses", "gradient,isomap"], "unknown analysis 'isomap'"),
         (["--grid-dims", "x,q"], "unknown state 'q'; states: x, y"),
         (["--pairs", "0"], "--pairs must be positive"),
+        (["--min-goal-distance", "-1"], "--min-goal-distance must be finite and at least 0"),
+        (["--min-goal-distance", "nan"], "--min-goal-distance must be finite and at least 0"),
     ],
 )
 def test_cli_bad_input_exits_2_with_a_message(args, message, capsys, tmp_path) -> None:
@@ -223,3 +359,53 @@ def test_cli_bad_input_exits_2_with_a_message(args, message, capsys, tmp_path) -
     assert err.startswith("sweeper diagnose: error:") and len(err.strip().splitlines()) == 1
     assert re.search(message, err)
     assert not any(tmp_path.iterdir())
+
+
+# ---- every analysis starts from a freshly reset env (issue 12) --------------------------
+@pytest.fixture
+def fetch_push_envs():
+    """``make()`` builds a 32-pixel fetch_push in state mode; all are closed afterwards."""
+    made = []
+
+    def make():
+        made.append(make_env("fetch_push", image_size=32, obs_mode="state"))
+        return made[-1]
+
+    yield make
+    for env in made:
+        env.close()
+
+
+def move_the_arm(env) -> None:
+    """The exploration analysis: random actions leave the arm somewhere else."""
+    before = env.gripper_position()
+    dx.random_exploration(env, episodes=2, steps=10, progress=False)
+    assert np.linalg.norm(env.gripper_position() - before) > 0.02  # or the test proves nothing
+
+
+def test_gradient_rows_do_not_depend_on_an_earlier_exploration(fetch_push_envs) -> None:
+    encoders = pixel((32, 32, 3))
+    kwargs = {"num_states": 3, "num_directions": 4, "progress": False}
+    alone = dx.gradient_agreement(fetch_push_envs(), encoders, **kwargs)
+    env = fetch_push_envs()
+    move_the_arm(env)
+    after = dx.gradient_agreement(env, encoders, **kwargs)
+    pd.testing.assert_frame_equal(after, alone, check_exact=True)
+
+
+@pytest.mark.parametrize(
+    "analysis",
+    [
+        lambda env, enc: dx.reward_correlation(env, enc, num_pairs=4, progress=False)[1],
+        lambda env, enc: dx.grid_topology(env, enc, grid_size=5, n_neighbors=4, progress=False)[1],
+        lambda env, enc: dx.arm_object_variance(env, enc, num_states=3, progress=False),
+    ],
+    ids=["correlation", "topology", "variance"],
+)
+def test_other_analyses_do_not_depend_on_an_earlier_exploration(fetch_push_envs, analysis) -> None:
+    # CONV, not PIXEL: a linear encoder cancels an arm that is the same in both images
+    encoders = {"conv": make_encoder("conv", (32, 32, 3), seed=0)}
+    alone = analysis(fetch_push_envs(), encoders)
+    env = fetch_push_envs()
+    move_the_arm(env)
+    pd.testing.assert_frame_equal(analysis(env, encoders), alone, check_exact=True)

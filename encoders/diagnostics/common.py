@@ -1,4 +1,5 @@
-"""What the analyses share: the env protocol, state sampling, rendering, progress lines."""
+"""What the analyses share: the env protocol, fresh resets, (state, goal) pairs, rendering,
+progress lines."""
 
 from __future__ import annotations
 
@@ -10,6 +11,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from encoders.base import RewardEncoder
+
+#: where (state, goal) pairs come from: the env's reset (its own start and goal
+#: distributions, as Algorithm 1 says) or uniform in ``state_bounds()``
+START_MODES = ("reset", "uniform")
 
 
 class ControllableEnv(Protocol):
@@ -23,6 +28,7 @@ class ControllableEnv(Protocol):
 
     def controllable_state(self) -> np.ndarray: ...
     def set_controllable_state(self, state: np.ndarray) -> np.ndarray: ...
+    def goal_state(self) -> np.ndarray: ...
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]: ...
     def render_image(self) -> np.ndarray: ...
 
@@ -33,14 +39,47 @@ def bounds(env: ControllableEnv) -> tuple[np.ndarray, np.ndarray]:
     return low, high
 
 
+def check_start(start: str) -> str:
+    """``start`` if it is one of ``START_MODES``; a ValueError that lists them otherwise."""
+    if start not in START_MODES:
+        raise ValueError(f"start must be one of {', '.join(START_MODES)}, got {start!r}")
+    return start
+
+
+def derived_seed(seed: int, *keys: int) -> int:
+    """A seed fixed by ``seed`` and ``keys``: draw ``k`` of a run gets its own stream, and
+    runs with seeds 0 and 1 share no draws (``seed + k`` would shift them by one)."""
+    return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0])
+
+
+def fresh_reset(env: ControllableEnv, seed: int) -> None:
+    """Reset ``env`` before an analysis: what an earlier analysis left behind must not reach
+    this one (on fetch_push ``set_controllable_state`` moves only the block, so a leftover
+    arm changed every result)."""
+    env.reset(seed=seed)
+
+
 def sample_states(
-    rng: np.random.Generator, low: np.ndarray, high: np.ndarray, n: int, margin: float = 0.0
+    rng: np.random.Generator, low: np.ndarray, high: np.ndarray, n: int
 ) -> np.ndarray:
-    """``n`` states uniform in the box shrunk by ``margin`` on every side (a side narrower
-    than ``2 * margin`` collapses to its centre)."""
-    lo = np.minimum(low + margin, (low + high) / 2)
-    hi = np.maximum(high - margin, (low + high) / 2)
-    return rng.uniform(lo, hi, size=(n, len(low)))
+    """``n`` states uniform in the box ``[low, high]``."""
+    return rng.uniform(low, high, size=(n, len(low)))
+
+
+def draw_pair(
+    env: ControllableEnv, start: str, rng: np.random.Generator, reset_seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """One (start state, goal) pair. ``"reset"``: ``env.reset(seed=reset_seed)`` draws both
+    from the env's own distributions (Fetch: the gripper's start) and they are read back;
+    ``"uniform"``: both uniform in ``env.state_bounds()`` from ``rng``, no reset."""
+    if check_start(start) == "reset":
+        env.reset(seed=reset_seed)
+        return (
+            np.asarray(env.controllable_state(), np.float64),
+            np.asarray(env.goal_state(), np.float64),
+        )
+    state, goal = sample_states(rng, *bounds(env), 2)
+    return state, goal
 
 
 def render_states(

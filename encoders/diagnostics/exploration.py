@@ -18,7 +18,8 @@ def random_exploration(
     progress: bool = True,
 ) -> pd.DataFrame:
     """Share of ``episodes`` random-action episodes of ``steps`` steps in which the goal is
-    reached at any step.
+    reached at any step. Episode ``k`` starts from ``env.reset(seed=seed + k)``, so nothing
+    an earlier analysis left behind reaches it.
 
     "Reached" means any ``*success`` flag in ``info`` is set (for the door: the angle or
     the hand success, as well as both). Rows (encoder ``"none"``): ``success_rate`` and

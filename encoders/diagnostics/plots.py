@@ -48,10 +48,11 @@ def plot_exploration(table: pd.DataFrame, path: Path, title: str) -> Path:
 
 
 def plot_gradient(table: pd.DataFrame, path: Path, title: str) -> Path:
-    """Box plot of the per-state cosine distances, one box per encoder."""
+    """Box plot of the per-state cosine distances, one box per encoder; samples without a
+    true gradient (NaN: goal at the start) are left out, as the summary's mean leaves them."""
     names = list(dict.fromkeys(table["encoder"]))
     fig, (ax,) = _grid(1, max(6.0, 1.2 * len(names)), 3.5)
-    data = [table.loc[table["encoder"] == n, "value"].to_numpy() for n in names]
+    data = [table.loc[table["encoder"] == n, "value"].dropna().to_numpy() for n in names]
     ax.boxplot(data, tick_labels=names, showmeans=True)
     ax.axhline(1.0, color="gray", linestyle="--", label="orthogonal (no agreement)")
     ax.set_xlabel("encoder")

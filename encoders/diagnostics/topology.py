@@ -3,7 +3,8 @@
 The latents of a ``grid_size`` x ``grid_size`` grid over two state dimensions (the others
 at the centre of the state box) are embedded in 2-D with isomap; a reward encoder that
 keeps the task's topology gives a flat, unfolded sheet coloured smoothly by each
-coordinate.
+coordinate. The env is reset first, so nothing an earlier analysis left (fetch_push: the
+arm) is in the pictures.
 """
 
 from __future__ import annotations
@@ -16,7 +17,14 @@ from scipy.spatial import procrustes
 from sklearn.manifold import Isomap, trustworthiness
 
 from encoders.base import RewardEncoder
-from encoders.diagnostics.common import ControllableEnv, Progress, bounds, encode_all, render_states
+from encoders.diagnostics.common import (
+    ControllableEnv,
+    Progress,
+    bounds,
+    encode_all,
+    fresh_reset,
+    render_states,
+)
 
 
 def default_grid_dims(env: ControllableEnv) -> tuple[int, int]:
@@ -34,9 +42,11 @@ def grid_topology(
     grid_size: int = 15,
     dims: Sequence[int] | None = None,
     n_neighbors: int = 10,
+    seed: int = 0,
     progress: bool = True,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Isomap of the latents of a state grid over ``dims`` (default ``default_grid_dims``).
+    """Isomap of the latents of a state grid over ``dims`` (default ``default_grid_dims``),
+    rendered after ``env.reset(seed=seed)``.
 
     Returns (summary rows ``encoder, metric, value`` with ``procrustes_disparity`` between
     the embedding and the reached grid, 0 = the same up to rotation and scale, and
@@ -60,6 +70,7 @@ def grid_topology(
     targets = np.tile((low + high) / 2, (len(ii), 1))
     targets[:, a] = np.linspace(low[a], high[a], grid_size)[ii]
     targets[:, b] = np.linspace(low[b], high[b], grid_size)[jj]
+    fresh_reset(env, seed)
     bar = Progress("topology grid states", len(targets), progress)
     reached, images = render_states(env, targets, bar)
     grid = reached[:, [a, b]]

@@ -2,7 +2,9 @@
 
 A reward for pushing should change with the object, not with the arm. The latent
 variance per dimension is measured twice: with only the arm moving (object held at the
-centre of its box) and with only the object moving (arm held where the reset put it).
+centre of its box) and with only the object moving (arm parked above the box centre, clear
+of the block: Fetch's reset leaves the gripper at the block's height there). The env is
+reset first, so nothing an earlier analysis left behind is in the pictures.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from encoders.diagnostics.common import (
     Progress,
     bounds,
     encode_all,
+    fresh_reset,
     render_states,
 )
 
@@ -37,7 +40,8 @@ def arm_object_variance(
     seed: int = 0,
     progress: bool = True,
 ) -> pd.DataFrame:
-    """Per-dimension latent variance with only the arm moving vs only the object moving.
+    """Per-dimension latent variance with only the arm moving vs only the object moving,
+    after ``env.reset(seed=seed)``.
 
     Object positions are uniform in ``env.state_bounds()``, with the arm parked above the
     box centre at the top of ``ARM_HEIGHTS``; arm positions are uniform over the same x-y
@@ -50,6 +54,7 @@ def arm_object_variance(
         raise ValueError("arm_object_variance needs an env with gripper_position()")
     if num_states < 2:
         raise ValueError(f"num_states must be at least 2, got {num_states}")
+    fresh_reset(env, seed)
     rng = np.random.default_rng(seed)
     low, high = bounds(env)
     centre = (low + high) / 2
