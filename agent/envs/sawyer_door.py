@@ -46,13 +46,13 @@ HAND_TASK_HIGH = np.array([0.35, 0.80, 0.31])
 DOOR_POSITION = (0.1, 0.95, 0.15)  # metaworld's init_config["obj_init_pos"]
 GRIPPER_CLOSED = (1.0, -1.0)  # ctrl of the two finger actuators
 _DRIVE_SUBSTEPS = 10
-#: default view: from above the table, left of the robot: hand, handle and the door's
-#: swing are all visible and the image is upright
+#: default view: top-down over the hand's box, as the thesis' door: the door's swing and the
+#: hand anywhere in ``hand_bounds()`` are in the picture, the robot's base at the bottom
 DEFAULT_CAMERA: dict[str, Any] = {
-    "lookat": [0.05, 0.72, 0.15],
-    "distance": 1.0,
-    "azimuth": 30.0,
-    "elevation": -60.0,
+    "lookat": [0.1, 0.64, 0.12],
+    "distance": 1.2,
+    "azimuth": 90.0,
+    "elevation": -89.0,
 }
 
 
