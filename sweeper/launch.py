@@ -12,7 +12,7 @@ An exception inside a trial is not retried (a seeded trial fails the same way ag
 trial is FAIL with ``error`` and ``traceback``, and the next ``sweeper launch`` re-runs it.
 Ctrl-C (or SIGTERM) stops the workers and marks the trials in flight ``interrupted``; a
 relaunch resumes them from their checkpoints. Exit codes: 0 all done, 1 some trials
-failed or another driver runs the study, 2 bad input, 130 interrupted. What trials print
+failed, 2 bad input, 3 another driver runs the study (busy), 130 interrupted. What trials print
 goes to Ray's worker logs (``/tmp/ray/session_latest/logs``), not to the progress display.
 """
 
@@ -41,6 +41,8 @@ if TYPE_CHECKING:
 
 #: seconds between the driver's heartbeats in the study
 HEARTBEAT_SECONDS = 15.0
+#: exit code of a launch refused because another live driver runs the study
+EXIT_BUSY = 3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -250,7 +252,7 @@ def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) ->
             store.claim_driver()
         except (StorageError, StudyBusy) as e:
             print(f"sweeper launch: {e}", file=stream)
-            return 2 if isinstance(e, StorageError) else 1
+            return 2 if isinstance(e, StorageError) else EXIT_BUSY
         try:
             if store.attrs.get("revision") != attrs["revision"]:
                 print(
@@ -270,6 +272,9 @@ def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) ->
             pool.shrink(len(todo))
             progress = Progress(spec.study, plan.keys(), spec.budget.env_steps, stream)
             return _drive(spec, store, todo, pool, progress, stream)
+        except StudyBusy as e:  # a heartbeat found another driver: this one looked dead
+            print(f"sweeper launch: stopped: {e}", file=stream)
+            return EXIT_BUSY
         finally:
             store.release_driver()
     finally:

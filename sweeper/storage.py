@@ -11,13 +11,15 @@ optuna-dashboard (or ``sweeper status``) can read a study while the driver write
 
 from __future__ import annotations
 
+import contextlib
+import json
 import math
 import os
 import socket
 import sqlite3
 import subprocess
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -26,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # optuna and sqlalchemy are imported where used: `sweeper --help` stays light
     import optuna
     from optuna.trial import FrozenTrial
+    from sqlalchemy.engine import Connection
 
 #: seconds a SQLite connection waits for a lock before giving up
 SQLITE_TIMEOUT = 60.0
@@ -336,36 +339,55 @@ class StudyStore:
     # -- driver lock ------------------------------------------------------------------
 
     def driver_alive(self, now: float | None = None) -> bool:
-        """Whether a live driver holds this study (heartbeat recent, same-host pid alive)."""
-        driver = self.attrs.get("driver")
-        if not driver:
-            return False
-        now = time.time() if now is None else now
-        if now - float(driver.get("heartbeat", 0)) > DRIVER_STALE_SECONDS:
-            return False
-        if driver.get("host") == socket.gethostname():
-            return _pid_alive(int(driver["pid"]))
-        return True
+        """Whether a live driver holds this study (see ``driver_alive``)."""
+        return driver_alive(self.attrs.get("driver"), now)
 
     def claim_driver(self) -> None:
-        """Become the study's driver, or raise StudyBusy if another one is alive."""
-        driver = self.attrs.get("driver") or {}
-        if driver.get("pid") != os.getpid() and self.driver_alive():
-            raise StudyBusy(
-                f"another `sweeper launch` drives this study (host {driver['host']}, "
-                f"pid {driver['pid']}); stop it first, or wait {DRIVER_STALE_SECONDS:.0f} s "
-                "after it died on another host"
-            )
-        self.heartbeat()
+        """Become the study's driver, or raise StudyBusy if another one is alive.
+
+        Reading the driver record, judging it and writing ours is one transaction holding
+        the study's lock: otherwise two launches released together both read "no driver"
+        and both run the whole plan.
+        """
+        with self._locked() as connection:
+            driver = _read_study_attr(connection, self.study_id, "driver")
+            if driver and not _is_this_process(driver) and driver_alive(driver):
+                raise StudyBusy(busy_message(driver))
+            _write_study_attr(connection, self.study_id, "driver", _this_driver())
 
     def heartbeat(self) -> None:
-        """Record that this driver is alive."""
-        driver = {"host": socket.gethostname(), "pid": os.getpid(), "heartbeat": time.time()}
-        self.storage.set_study_user_attr(self.study_id, "driver", driver)
+        """Record that this driver is alive; StudyBusy if another driver took the study
+        over meanwhile (this one looked dead), whose record is then left alone."""
+        with self._locked() as connection:
+            driver = _read_study_attr(connection, self.study_id, "driver")
+            if driver and not _is_this_process(driver):
+                raise StudyBusy(busy_message(driver))
+            _write_study_attr(connection, self.study_id, "driver", _this_driver())
 
     def release_driver(self) -> None:
-        """Say that no driver runs the study any more."""
-        self.storage.set_study_user_attr(self.study_id, "driver", None)
+        """Say that no driver runs the study any more (unless another one took it over)."""
+        with self._locked() as connection:
+            driver = _read_study_attr(connection, self.study_id, "driver")
+            if not driver or _is_this_process(driver):
+                _write_study_attr(connection, self.study_id, "driver", None)
+
+    @contextlib.contextmanager
+    def _locked(self) -> Iterator[Connection]:
+        """A transaction that holds the study's write lock until it commits: SQLite's
+        ``BEGIN IMMEDIATE`` (the file's write lock), or the study row ``FOR UPDATE``."""
+        from optuna.storages._rdb.models import StudyModel
+        from sqlalchemy import select
+
+        engine = self.storage.engine
+        with engine.connect() as connection:
+            if engine.dialect.name == "sqlite":
+                connection.exec_driver_sql("BEGIN IMMEDIATE")
+            else:
+                studies = StudyModel.__table__
+                query = select(studies.c.study_id).where(studies.c.study_id == self.study_id)
+                connection.execute(query.with_for_update())
+            yield connection
+            connection.commit()
 
     # -- trials -----------------------------------------------------------------------
 
@@ -475,6 +497,58 @@ class StudyStore:
 
         self.set_attrs(trial_id, attrs)
         self.storage.set_trial_state_values(trial_id, TrialState.FAIL)
+
+
+def driver_alive(driver: Mapping[str, Any] | None, now: float | None = None) -> bool:
+    """Whether the ``driver`` record names a live driver: heartbeat recent and, on this
+    host, its pid alive."""
+    if not driver:
+        return False
+    now = time.time() if now is None else now
+    if now - float(driver.get("heartbeat", 0)) > DRIVER_STALE_SECONDS:
+        return False
+    if driver.get("host") == socket.gethostname():
+        return _pid_alive(int(driver["pid"]))
+    return True
+
+
+def busy_message(driver: Mapping[str, Any]) -> str:
+    """Why a launch cannot drive the study now, and what to do."""
+    return (
+        f"another `sweeper launch` drives this study (host {driver.get('host')}, "
+        f"pid {driver.get('pid')}); stop it first, or wait {DRIVER_STALE_SECONDS:.0f} s "
+        "after it died on another host"
+    )
+
+
+def _this_driver() -> dict[str, Any]:
+    return {"host": socket.gethostname(), "pid": os.getpid(), "heartbeat": time.time()}
+
+
+def _is_this_process(driver: Mapping[str, Any]) -> bool:
+    return driver.get("host") == socket.gethostname() and driver.get("pid") == os.getpid()
+
+
+def _read_study_attr(connection: Connection, study_id: int, key: str) -> Any:
+    """A study user attr read inside ``connection``'s transaction (None if unset)."""
+    from optuna.storages._rdb.models import StudyUserAttributeModel
+    from sqlalchemy import select
+
+    table = StudyUserAttributeModel.__table__
+    query = select(table.c.value_json).where(table.c.study_id == study_id, table.c.key == key)
+    value = connection.execute(query).scalar_one_or_none()
+    return None if value is None else json.loads(value)
+
+
+def _write_study_attr(connection: Connection, study_id: int, key: str, value: Any) -> None:
+    """Set a study user attr inside ``connection``'s transaction, as Optuna stores it."""
+    from optuna.storages._rdb.models import StudyUserAttributeModel
+
+    table = StudyUserAttributeModel.__table__
+    where = (table.c.study_id == study_id) & (table.c.key == key)
+    text = json.dumps(value)
+    if connection.execute(table.update().where(where).values(value_json=text)).rowcount == 0:
+        connection.execute(table.insert().values(study_id=study_id, key=key, value_json=text))
 
 
 def _pid_alive(pid: int) -> bool:

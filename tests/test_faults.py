@@ -228,3 +228,75 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, ray_
             assert successor.user_attrs["key"] == trial.user_attrs["key"]
             assert trial.number in successor.user_attrs["supersedes"]
     assert all(t.user_attrs["curve"]["step"] == [0, 100, 200] for t in by_key.values())
+
+
+RACER = """
+import sys, time
+from agent.config import TrialResult
+from sweeper.launch import launch, prepare
+from sweeper.storage import StudyStore
+
+spec_path, release = sys.argv[1], float(sys.argv[2])
+claim = StudyStore.claim_driver
+
+
+def claim_when_released(self):
+    while time.time() < release:  # both launches claim in the same millisecond
+        pass
+    claim(self)
+
+
+def quick(config, report=None):
+    report(0, {"success_rate": 0.0, "final_distance": 1.0})
+    time.sleep(0.5)
+    steps = (0, config.total_steps)
+    metrics = {"success_rate": (0.0, 1.0), "final_distance": (1.0, 0.0)}
+    return TrialResult(steps=steps, metrics=metrics, auc=0.5)
+
+
+StudyStore.claim_driver = claim_when_released
+spec, plan = prepare(spec_path)
+sys.exit(launch(spec, plan, train=quick))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_two_launches_released_together_run_the_budget_once(
+    tmp_path, ray_address, backend, request
+):
+    """One launch drives, the other exits 3 (busy) with one line; 4 keys, 4 trials."""
+    url = (
+        f"sqlite:///{tmp_path / 'study.db'}"
+        if backend == "sqlite"
+        else request.getfixturevalue("pg_url")
+    )
+    spec = write_spec(
+        tmp_path / "spec.yaml",
+        study="race",
+        trials_per_method=2,
+        storage=url,
+        checkpoints=str(tmp_path / "checkpoints"),
+        execution={"address": ray_address},
+    )
+    keys = prepare(str(spec))[1].keys()
+    assert len(keys) == 4
+    release = time.time() + 25  # both have joined Ray and opened the study by then
+    racers = [
+        subprocess.Popen(
+            [sys.executable, "-c", RACER, str(spec), str(release)],
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=tmp_path,
+        )
+        for _ in range(2)
+    ]
+    results = sorted((r.wait(timeout=240), r.stderr.read()) for r in racers)
+    assert time.time() > release + 0.5  # the race really happened at the release
+    assert [code for code, _ in results] == [0, 3], results
+    busy = results[1][1].strip()
+    assert len(busy.splitlines()) == 1, busy
+    assert busy.startswith("sweeper launch: another `sweeper launch` drives this study")
+    trials = trials_of(url, "race")
+    check_exact_budget(trials, keys)
+    assert len(trials) == 4

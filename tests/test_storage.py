@@ -9,11 +9,9 @@ import sqlite3
 import subprocess
 import sys
 import time
-import uuid
 from dataclasses import dataclass, field
 
 import optuna
-import psycopg
 import pytest
 from optuna.trial import TrialState
 
@@ -31,7 +29,6 @@ from sweeper.storage import (
 )
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
-PG_ADMIN = "host=127.0.0.1 port=5432 dbname=test user=postgres"
 
 
 @dataclass(frozen=True)
@@ -55,17 +52,6 @@ ENTRIES = [Entry(m, c, 0) for m in ("pixel", "vae") for c in range(2)]
 @pytest.fixture
 def sqlite_url(tmp_path):
     return f"sqlite:///{tmp_path / 'sub' / 'study.db'}"
-
-
-@pytest.fixture
-def pg_url():
-    """A fresh PostgreSQL schema on the local server, dropped afterwards."""
-    schema = f"sweeper_test_{uuid.uuid4().hex[:10]}"
-    with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
-        connection.execute(f"CREATE SCHEMA {schema}")
-    yield f"postgresql://postgres@127.0.0.1:5432/test?options=-csearch_path%3D{schema}"
-    with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
-        connection.execute(f"DROP SCHEMA {schema} CASCADE")
 
 
 def test_database_error_is_one_line_without_the_password():
@@ -254,3 +240,45 @@ def test_driver_lock(sqlite_url):
     store.claim_driver()  # its heartbeat is stale
     store.release_driver()
     assert store.attrs["driver"] is None
+
+
+CLAIMER = """
+import json, sys, time
+import optuna
+from sweeper.storage import StudyBusy, StudyStore, open_storage
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+url, start, rounds = sys.argv[1], float(sys.argv[2]), int(sys.argv[3])
+store = StudyStore.find(open_storage(url, create=False), "race")
+results = []
+for i in range(rounds):
+    while time.time() < start + i:  # every claimer is released at the same instant
+        pass
+    try:
+        store.claim_driver()
+        results.append("ok")
+        time.sleep(0.5)
+        store.release_driver()
+    except StudyBusy:
+        results.append("busy")
+print(json.dumps(results))
+"""
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_two_processes_released_together_never_both_claim(backend, request):
+    """The claim is one atomic step: of two claimers released in the same millisecond,
+    exactly one becomes the driver, round after round."""
+    url = request.getfixturevalue("sqlite_url" if backend == "sqlite" else "pg_url")
+    StudyStore.open_or_create(open_storage(url), "race", {"plan_hash": "h"})
+    rounds, start = 6, time.time() + 8  # both have imported optuna by then
+    claimers = [
+        subprocess.Popen(
+            [sys.executable, "-c", CLAIMER, url, str(start), str(rounds)],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]
+    outcomes = [json.loads(c.communicate(timeout=120)[0]) for c in claimers]
+    for round_ in zip(*outcomes, strict=True):
+        assert sorted(round_) == ["busy", "ok"], outcomes
