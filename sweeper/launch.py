@@ -239,6 +239,7 @@ def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) ->
     """Open the study as its driver, sync it with the plan and run what is left."""
     import optuna
 
+    from sweeper.plan import build_plan
     from sweeper.progress import Progress
     from sweeper.storage import StorageError, StudyBusy, StudyStore, open_storage, redact
 
@@ -260,6 +261,7 @@ def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) ->
                     f"{store.attrs.get('revision')}; this is {attrs['revision']}",
                     file=stream,
                 )
+            plan = build_plan(spec, study_uid=store.study_uid)  # its checkpoints are its own
             todo = store.sync(plan.entries, plan.hash)
             total = len(plan.entries)
             print(
@@ -347,6 +349,8 @@ def _drive(
                 elif isinstance(event, Finished):
                     _record_result(store, job, event.result)
                     del jobs[event.token]
+                    if not execution.keep_checkpoints:
+                        _remove_checkpoint(job.entry, progress)
                     outcome = event.result.outcome
                     progress.set_state(job.entry.key, outcome)
                     progress.note(f"{job.entry.key} {outcome}: AUC {event.result.auc:.3f}")
@@ -409,6 +413,20 @@ def _record_result(store: StudyStore, job: _Job, result: Any) -> None:
         attrs["diverged_step"] = result.diverged_step
         attrs["diverged_loss"] = result.diverged_loss
     store.complete(job.trial_id, result.auc, attrs)
+
+
+def _remove_checkpoint(entry: PlanEntry, progress: Progress) -> None:
+    """Delete a recorded trial's checkpoint folder: it is never resumed again, and a
+    study of thousands of trials would otherwise keep every replay buffer on disk."""
+    from agent.storage_io import remove
+
+    location = entry.trial_config.checkpoint_dir
+    if location is None:
+        return
+    try:
+        remove(location)
+    except Exception as e:  # the result is recorded: a checkpoint left over is no error
+        progress.note(f"{entry.key}: could not remove its checkpoint {location}: {e}")
 
 
 def _sigterm_to_interrupt() -> Any:

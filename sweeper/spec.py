@@ -437,6 +437,9 @@ class Execution(_Strict):
     threads_per_trial: PosInt = 1
     retries: NonNegInt = Field(2, description="re-runs of a trial whose worker died")
     checkpoint_every: PosInt = Field(5000, description="env steps between checkpoints")
+    keep_checkpoints: bool = Field(
+        False, description="keep a finished trial's checkpoint (false: removed once recorded)"
+    )
 
     @field_validator("address")
     @classmethod

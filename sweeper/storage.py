@@ -15,6 +15,7 @@ import contextlib
 import json
 import math
 import os
+import secrets
 import socket
 import sqlite3
 import subprocess
@@ -347,13 +348,23 @@ class StudyStore:
 
         Reading the driver record, judging it and writing ours is one transaction holding
         the study's lock: otherwise two launches released together both read "no driver"
-        and both run the whole plan.
+        and both run the whole plan. The first claim also gives the study its ``study_uid``
+        (see ``study_uid``), under the same lock so it is written once.
         """
         with self._locked() as connection:
             driver = _read_study_attr(connection, self.study_id, "driver")
             if driver and not _is_this_process(driver) and driver_alive(driver):
                 raise StudyBusy(busy_message(driver))
             _write_study_attr(connection, self.study_id, "driver", _this_driver())
+            if _read_study_attr(connection, self.study_id, "study_uid") is None:
+                uid = secrets.token_hex(8)
+                _write_study_attr(connection, self.study_id, "study_uid", uid)
+
+    @property
+    def study_uid(self) -> str:
+        """The study's random identity, set by its first driver: its checkpoints are kept
+        under it and carry it, so a new database with the same spec resumes none of them."""
+        return self.attrs["study_uid"]
 
     def heartbeat(self) -> None:
         """Record that this driver is alive; StudyBusy if another driver took the study

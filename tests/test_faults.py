@@ -96,7 +96,7 @@ def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path, ray_ad
     )
     spec, plan = prepare(str(spec_path))
     victim = plan.entries[0]
-    checkpoint = Path(victim.trial_config.checkpoint_dir) / "checkpoint.pt"
+    checkpoints = tmp_path / "checkpoints"  # the study's folder is named when it starts
     codes = []
     driver = threading.Thread(target=lambda: codes.append(launch(spec, plan)))
     driver.start()
@@ -106,7 +106,8 @@ def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path, ray_ad
             trial = next(
                 (t for t in trials_of(url, "faults") if t.user_attrs.get("key") == victim.key), None
             )
-            if trial is None or trial.state != TrialState.RUNNING or not checkpoint.exists():
+            checkpointed = any(checkpoints.glob(f"*/{victim.key}/checkpoint.pt"))
+            if trial is None or trial.state != TrialState.RUNNING or not checkpointed:
                 return None
             return trial.user_attrs.get("worker")
 

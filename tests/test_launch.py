@@ -252,6 +252,39 @@ def test_exception_and_divergence_are_recorded_then_relaunch_reruns_failed(tmp_p
     assert trials[diverged.number].datetime_complete == diverged.datetime_complete
 
 
+def resume_marker(config, report=None):
+    """Resumes from a marker file in its checkpoint_dir (as a checkpoint), else writes one."""
+    marker = Path(config.checkpoint_dir) / "checkpoint.pt"
+    resumed_from = int(marker.read_text()) if marker.exists() else None
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    marker.write_text("100")
+    report(0, {"success_rate": 0.0, "final_distance": 1.0})
+    return fake_result(
+        config, [0.0, 1.0, 1.0, 1.0], [1.0, 0.0, 0.0, 0.0], resumed_from=resumed_from
+    )
+
+
+@pytest.mark.parametrize("keep", [None, True])
+def test_a_new_study_with_the_same_spec_starts_every_trial_from_step_0(tmp_path, keep):
+    """Checkpoints belong to one study: a new database with the same spec and checkpoint
+    root resumes nothing; finished trials' checkpoints are removed unless kept."""
+    root = tmp_path / "checkpoints"
+    execution = yaml.safe_load(CI_SPEC.read_text())["execution"]
+    if keep is not None:
+        execution["keep_checkpoints"] = keep
+    for studies, database in enumerate(("first.db", "second.db"), start=1):
+        url = f"sqlite:///{tmp_path / database}"
+        spec_path = write_spec(
+            tmp_path / "ci.yaml", storage=url, checkpoints=str(root), execution=execution
+        )
+        assert launch(*prepare(str(spec_path)), train=resume_marker) == 0
+        trials = load(url).get_trials()
+        assert [t.user_attrs["resumed_from"] for t in trials] == [None, None]
+        assert len(list(root.rglob("checkpoint.pt"))) == (2 * studies if keep else 0)
+    if keep:  # one folder per study
+        assert len({p.relative_to(root).parts[0] for p in root.rglob("checkpoint.pt")}) == 2
+
+
 def test_progress_display():
     import io
 
