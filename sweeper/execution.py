@@ -17,29 +17,69 @@ import socket
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import ray
+
+#: Ray's switch between cluster mode (listen on every interface) and a single machine
+LOOPBACK_VARIABLE = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+#: set it (to 1) to have a local Ray collect and export metrics
+METRICS_VARIABLE = "RAY_enable_metrics_collection"
 
 
 def start_ray(address: str | None, num_cpus: int | None = None) -> bool:
     """Connect to Ray; return True if this call started it (so the caller shuts it down).
 
     ``address=None`` starts a fresh local instance (``address="local"``: a plain
-    ``ray.init()`` would attach to whatever cluster a stale /tmp/ray file names). An
-    already initialised Ray (e.g. in a notebook or a test) is used as it is.
+    ``ray.init()`` would attach to whatever cluster a stale /tmp/ray file names) that
+    listens on 127.0.0.1 only and exports no metrics unless ``RAY_enable_metrics_collection``
+    says so. An already initialised Ray (e.g. in a notebook or a test) is used as it is.
     """
     if ray.is_initialized():
         return False
     common = {"log_to_driver": False, "logging_level": "WARNING"}
     if address is None:
-        ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, **common)
+        metrics = {} if METRICS_VARIABLE in os.environ else {"enable_metrics_collection": False}
+        with _loopback_only():
+            ray.init(
+                address="local",
+                num_cpus=num_cpus,
+                include_dashboard=False,
+                _node_ip_address="127.0.0.1",
+                _system_config=metrics,
+                **common,
+            )
     else:
         _check_reachable(address)
         ray.init(address=address, **common)
     return True
+
+
+@contextlib.contextmanager
+def _loopback_only() -> Iterator[None]:
+    """Start Ray in its single-machine mode (the one it uses on macOS and Windows): every
+    Ray process binds to 127.0.0.1, where by default they listen on all interfaces and
+    anyone who reaches one can run code here.
+
+    The switch is an environment variable read by each Ray process when it starts, and by
+    this one when it imported ray (then copied into ``ray_constants``), so both are set
+    while Ray starts; its processes keep it, this one gets its own values back.
+    """
+    from ray._private import ray_constants
+
+    saved = os.environ.get(LOOPBACK_VARIABLE), ray_constants.ENABLE_RAY_CLUSTER
+    os.environ[LOOPBACK_VARIABLE] = "0"
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    try:
+        yield
+    finally:
+        if saved[0] is None:
+            os.environ.pop(LOOPBACK_VARIABLE, None)
+        else:
+            os.environ[LOOPBACK_VARIABLE] = saved[0]
+        ray_constants.ENABLE_RAY_CLUSTER = saved[1]
 
 
 def _check_reachable(address: str, timeout: float = 10.0) -> None:

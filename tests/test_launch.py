@@ -338,6 +338,40 @@ def test_unreachable_ray_address_exits_2_and_writes_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+LOCAL_RAY = """
+import json
+from sweeper.execution import start_ray
+import ray, psutil  # Ray vendors psutil
+start_ray(None, num_cpus=1)
+node = ray._private.worker._global_node
+family = {node_pid.pid for node_pid in psutil.Process().children(recursive=True)}
+listening = sorted({c.laddr.ip for c in psutil.net_connections("inet")
+                    if c.status == "LISTEN" and c.pid in family | {psutil.Process().pid}})
+print(json.dumps({"node_ip": node.node_ip_address, "gcs": node.gcs_address,
+                  "listening": listening, "system_config": node._ray_params._system_config}))
+ray.shutdown()
+"""
+
+
+def test_a_local_ray_listens_on_the_loopback_only_without_metrics():
+    """Nothing a local study starts is reachable from another machine."""
+    import ipaddress
+    import json
+    import subprocess
+
+    done = subprocess.run(
+        [sys.executable, "-c", LOCAL_RAY], capture_output=True, text=True, timeout=180, check=True
+    )
+    ray_node = json.loads(done.stdout.splitlines()[-1])
+    assert ray_node["node_ip"] == "127.0.0.1"
+    assert ray_node["gcs"].startswith("127.0.0.1:")
+    assert ray_node["listening"]
+    for ip in ray_node["listening"]:
+        address = ipaddress.ip_address(ip)
+        assert (getattr(address, "ipv4_mapped", None) or address).is_loopback, ray_node
+    assert ray_node["system_config"].get("enable_metrics_collection") is False
+
+
 def test_a_refused_connection_names_token_authentication(monkeypatch):
     from sweeper.launch import cannot_reach_message
 
