@@ -202,8 +202,19 @@ def launch(
                 f"not execution.max_concurrent={execution.max_concurrent}",
                 file=stream,
             )
-        # the workers start (importing torch and the env) while the driver opens the study
         size = min(fit, execution.max_concurrent, len(plan.entries))
+        threads = execution.threads_per_trial
+        refusal = oversubscription(threads, size, ray.cluster_resources().get("CPU", 0))
+        if refusal is not None:
+            print(f"sweeper launch: execution: {refusal}", file=stream)
+            return 2
+        cores = len(os.sched_getaffinity(0))
+        if execution.address is None and threads * size > cores:
+            print(
+                f"sweeper launch: note: {oversubscription(threads, size, cores, 'here')}",
+                file=stream,
+            )
+        # the workers start (importing torch and the env) while the driver opens the study
         pool = WorkerPool(size, cpus=cpus, gpus=gpus, train=train, env=spec.env.name)
         try:
             return _run_study(spec, plan, pool, stream)
@@ -212,6 +223,28 @@ def launch(
     finally:
         if started_ray:
             ray.shutdown()
+
+
+def oversubscription(
+    threads: int, trials: int, cpus: float, where: str = "Ray reports"
+) -> str | None:
+    """Why ``trials`` at once with ``threads`` torch threads each do not fit ``cpus``, and
+    the fix; None when they fit. Torch threads beyond the cores make every trial several
+    times slower (9x measured), not just the extra ones."""
+    if threads * trials <= cpus:
+        return None
+    if threads > cpus:
+        fix = f"lower threads_per_trial to at most {cpus:g}"
+    else:
+        fix = (
+            f"run fewer at once (max_concurrent, --max-concurrent {int(cpus // threads)}), "
+            f"lower threads_per_trial, or reserve them (cpus_per_trial: {threads})"
+        )
+    return (
+        f"threads_per_trial {threads} x {trials} trials at once = {threads * trials} torch "
+        f"threads, more than the {cpus:g} CPUs {where}: every trial would run several times "
+        f"slower; {fix}"
+    )
 
 
 def cannot_reach_message(address: str | None, error: BaseException) -> str:

@@ -285,6 +285,25 @@ def test_a_new_study_with_the_same_spec_starts_every_trial_from_step_0(tmp_path,
         assert len({p.relative_to(root).parts[0] for p in root.rglob("checkpoint.pt")}) == 2
 
 
+def test_more_torch_threads_than_cpus_is_refused_with_the_fix(tmp_path):
+    """threads_per_trial x trials at once above Ray's CPUs runs every trial several times
+    slower: refused (exit 2) before the study is touched, naming the fields to change."""
+    import io
+
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    execution = {**yaml.safe_load(CI_SPEC.read_text())["execution"], "threads_per_trial": 2}
+    spec_path = write_spec(tmp_path / "ci.yaml", storage=url, execution=execution)
+    stream = io.StringIO()
+    assert launch(*prepare(str(spec_path)), train=always_succeed, stream=stream) == 2
+    message = stream.getvalue().strip()
+    assert len(message.splitlines()) == 1, message
+    assert message.startswith("sweeper launch: execution: threads_per_trial 2 x 2 trials")
+    assert "2 CPUs" in message and "--max-concurrent 1" in message
+    assert not (tmp_path / "study.db").exists()
+    stream = io.StringIO()  # one trial at a time fits
+    assert launch(*prepare(str(spec_path), max_concurrent=1), train=always_succeed) == 0
+
+
 def test_progress_display():
     import io
 
