@@ -25,7 +25,6 @@ import math
 import os
 import signal
 import sys
-import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -37,7 +36,7 @@ if TYPE_CHECKING:
     from sweeper.plan import Plan, PlanEntry
     from sweeper.progress import Progress
     from sweeper.spec import StudySpec
-    from sweeper.storage import StudyStore
+    from sweeper.storage import Heartbeat, StudyStore
 
 #: seconds between the driver's heartbeats in the study
 HEARTBEAT_SECONDS = 15.0
@@ -269,17 +268,14 @@ def cannot_reach_message(address: str | None, error: BaseException) -> str:
 
 
 def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) -> int:
-    """Open the study as its driver, sync it with the plan and run what is left."""
+    """Open the study as its driver, its heartbeat beating until it lets go; run it."""
     import optuna
 
-    from sweeper.plan import build_plan
-    from sweeper.progress import Progress
-    from sweeper.storage import StorageError, StudyBusy, StudyStore, open_storage, redact
+    from sweeper.storage import StorageError, StudyBusy, StudyStore, open_storage
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    url = spec.storage_url
     attrs = study_attrs(spec, plan)
-    storage = open_storage(url)
+    storage = open_storage(spec.storage_url)
     try:
         try:
             store = StudyStore.open_or_create(storage, spec.study, attrs)
@@ -288,25 +284,14 @@ def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) ->
             print(f"sweeper launch: {e}", file=stream)
             return 2 if isinstance(e, StorageError) else EXIT_BUSY
         try:
-            if store.attrs.get("revision") != attrs["revision"]:
-                print(
-                    f"sweeper launch: note: the study began at code revision "
-                    f"{store.attrs.get('revision')}; this is {attrs['revision']}",
-                    file=stream,
-                )
-            plan = build_plan(spec, study_uid=store.study_uid)  # its checkpoints are its own
-            todo = store.sync(plan.entries, plan.hash)
-            total = len(plan.entries)
-            print(
-                f"study {spec.study!r} in {redact(url)}: {total - len(todo)} of {total} "
-                f"trials done, {len(todo)} to run",
-                file=stream,
-            )
-            if not todo:
-                return 0
-            pool.shrink(len(todo))
-            progress = Progress(spec.study, plan.keys(), spec.budget.env_steps, stream)
-            return _drive(spec, store, todo, pool, progress, stream)
+            with store.heartbeats(HEARTBEAT_SECONDS) as beat:
+                if store.attrs.get("revision") != attrs["revision"]:
+                    print(
+                        f"sweeper launch: note: the study began at code revision "
+                        f"{store.attrs.get('revision')}; this is {attrs['revision']}",
+                        file=stream,
+                    )
+                return _sync_and_drive(spec, store, pool, beat, stream)
         except StudyBusy as e:  # a heartbeat found another driver: this one looked dead
             print(f"sweeper launch: stopped: {e}", file=stream)
             return EXIT_BUSY
@@ -317,12 +302,36 @@ def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) ->
         storage.engine.dispose()
 
 
+def _sync_and_drive(
+    spec: StudySpec, store: StudyStore, pool: WorkerPool, beat: Heartbeat, stream: TextIO
+) -> int:
+    """Give the plan's keys their trials, then run what is left."""
+    from sweeper.plan import build_plan
+    from sweeper.progress import Progress
+    from sweeper.storage import redact
+
+    plan = build_plan(spec, study_uid=store.study_uid)  # its checkpoints are its own
+    todo = store.sync(plan.entries, plan.hash)
+    total = len(plan.entries)
+    print(
+        f"study {spec.study!r} in {redact(spec.storage_url)}: {total - len(todo)} of {total} "
+        f"trials done, {len(todo)} to run",
+        file=stream,
+    )
+    if not todo:
+        return 0
+    pool.shrink(len(todo))
+    progress = Progress(spec.study, plan.keys(), spec.budget.env_steps, stream)
+    return _drive(spec, store, todo, pool, progress, beat, stream)
+
+
 def _drive(
     spec: StudySpec,
     store: StudyStore,
     todo: list[tuple[PlanEntry, Any]],
     pool: WorkerPool,
     progress: Progress,
+    beat: Heartbeat,
     stream: TextIO,
 ) -> int:
     """The driver loop: dispatch keys to workers, write what comes back."""
@@ -335,7 +344,6 @@ def _drive(
     try:
         queue = deque(todo)
         failed = 0
-        last_beat = time.monotonic()
         for entry, _ in todo:
             progress.set_state(entry.key, "left")
 
@@ -399,9 +407,7 @@ def _drive(
                     else:
                         error = f"worker died {job.attempts} times; last: {event.error}"
                         give_up(job, {"error": error})
-            if time.monotonic() - last_beat > HEARTBEAT_SECONDS:
-                store.heartbeat()
-                last_beat = time.monotonic()
+            beat.check()  # stops this driver if another one took the study over
             progress.refresh()
         progress.refresh(force=True)
         progress.close()
