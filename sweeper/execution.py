@@ -198,6 +198,15 @@ class _Slot:
     token: str | None = None
     run_ref: Any = None
     drain_ref: Any = None
+    answered: float = 0.0  # monotonic time of the trial's start or its last drain answer
+
+    def stalled(self, now: float, timeout: float) -> str | None:
+        """Why the trial looks hung, or None: its worker's second thread answers ``drain``
+        within milliseconds while the process runs, so ``timeout`` s without an answer
+        means a stopped process or node (which Ray never reports as dead)."""
+        if now - self.answered > timeout:
+            return f"no answer from the worker for {now - self.answered:.0f} s"
+        return None
 
 
 class WorkerPool:
@@ -205,7 +214,9 @@ class WorkerPool:
 
     Only actors that have started count as idle: after a node is lost, a replacement
     actor may wait for resources indefinitely, and a trial handed to it would wait too.
-    ``train`` and ``env`` are passed to each ``TrialWorker``.
+    ``train`` and ``env`` are passed to each ``TrialWorker``. A busy actor that stalls
+    (``_Slot.stalled`` with ``stall_timeout``) is killed and reported ``Lost``, as Ray
+    never notices a stopped process.
     """
 
     def __init__(
@@ -215,7 +226,9 @@ class WorkerPool:
         gpus: float = 0,
         train: Callable[..., Any] | None = None,
         env: str | None = None,
+        stall_timeout: float = 600.0,
     ) -> None:
+        self._stall_timeout = stall_timeout
         self._options = {
             "num_cpus": cpus,
             "num_gpus": gpus,
@@ -270,6 +283,7 @@ class WorkerPool:
         """Start ``config`` on an idle actor; ``token`` names it in the events."""
         slot = self._idle_slots()[0]
         slot.token, slot.run_ref = token, slot.actor.run.remote(token, config)
+        slot.answered = time.monotonic()
 
     def poll(self, timeout: float = 1.0) -> list[Event]:
         """Wait up to ``timeout`` s for a trial to end or an actor to start; return what
@@ -296,6 +310,13 @@ class WorkerPool:
             if slot.run_ref in done:  # a drain in flight holds reports older than run's
                 ray.wait([slot.drain_ref], timeout=10)
             events += self._collect_drain(slot)
+        now = time.monotonic()
+        for index, slot in enumerate(self._slots):
+            why = slot.token and slot.run_ref not in done and slot.stalled(now, self._stall_timeout)
+            if why:
+                events.append(Lost(slot.token, f"{why}: hung or stopped; killed"))
+                ray.kill(slot.actor)
+                self._slots[index] = self._new_slot()
         for index, slot in enumerate(self._slots):
             if slot.token is None or slot.run_ref not in done:
                 continue
@@ -325,6 +346,7 @@ class WorkerPool:
             drained = ray.get(ready[0])
         except ray.exceptions.RayError:
             return []  # the worker is gone; its run ref says so
+        slot.answered = time.monotonic()
         return self._events(slot, drained)
 
     @staticmethod

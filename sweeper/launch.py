@@ -6,8 +6,9 @@ study, gives every plan key that is not done a WAITING trial (``StudyStore.sync`
 hands the keys to a pool of Ray worker actors, one trial per actor at a time. Reports
 stream back as intermediate values; a finished trial is told its AUC.
 
-Failures: a worker that dies is replaced and the trial re-run from its checkpoint, with
-the same parameters and seed, in the same Optuna trial, up to ``execution.retries`` times.
+Failures: a worker that dies, or stops answering for ``execution.stall_timeout`` s, is
+replaced and the trial re-run from its checkpoint, with the same parameters and seed, in
+the same Optuna trial, up to ``execution.retries`` times.
 An exception inside a trial is not retried (a seeded trial fails the same way again): the
 trial is FAIL with ``error`` and ``traceback``, and the next ``sweeper launch`` re-runs it.
 Ctrl-C (or SIGTERM) stops the workers and marks the trials in flight ``interrupted``; a
@@ -214,7 +215,14 @@ def launch(
                 file=stream,
             )
         # the workers start (importing torch and the env) while the driver opens the study
-        pool = WorkerPool(size, cpus=cpus, gpus=gpus, train=train, env=spec.env.name)
+        pool = WorkerPool(
+            size,
+            cpus=cpus,
+            gpus=gpus,
+            train=train,
+            env=spec.env.name,
+            stall_timeout=execution.stall_timeout,
+        )
         try:
             return _run_study(spec, plan, pool, stream)
         finally:

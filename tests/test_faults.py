@@ -28,6 +28,7 @@ from sweeper.storage import open_storage
 ROOT = Path(__file__).resolve().parent.parent
 CI_SPEC = ROOT / "studies" / "ci.yaml"
 optuna.logging.set_verbosity(optuna.logging.WARNING)
+ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake trains below
 
 
 @pytest.fixture(scope="module")
@@ -301,3 +302,66 @@ def test_two_launches_released_together_run_the_budget_once(
     trials = trials_of(url, "race")
     check_exact_budget(trials, keys)
     assert len(trials) == 4
+
+
+def steady(config, report=None):
+    """A trial that evaluates every 1.5 s and checkpoints (a marker file) after each."""
+    from agent.config import TrialResult
+
+    marker = Path(config.checkpoint_dir) / "checkpoint.pt"
+    resumed_from = int(marker.read_text()) if marker.exists() else None
+    steps = list(range(0, config.total_steps + 1, config.eval_every))
+    for step in steps:
+        if resumed_from is None or step > resumed_from:
+            time.sleep(1.5)
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            marker.write_text(str(step))
+        report(step, {"success_rate": 0.0, "final_distance": 1.0})
+    metrics = {"success_rate": (0.0,) * len(steps), "final_distance": (1.0,) * len(steps)}
+    return TrialResult(steps=tuple(steps), metrics=metrics, auc=0.0, resumed_from=resumed_from)
+
+
+@pytest.mark.slow
+def test_a_stopped_worker_is_noticed_and_its_trial_retried(tmp_path, ray_address):
+    """A worker that stops answering (SIGSTOP: a frozen process or node) is treated as
+    dead after execution.stall_timeout: its trial re-runs from its checkpoint, exactly once."""
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    spec_path = write_spec(
+        tmp_path / "spec.yaml",
+        study="stall",
+        seeds=[0, 1],
+        methods={"pixel": {}},
+        storage=url,
+        checkpoints=str(tmp_path / "checkpoints"),
+        execution={"retries": 1, "stall_timeout": 4},
+    )
+    spec, plan = prepare(str(spec_path))
+    victim = plan.entries[0]
+    codes = []
+    driver = threading.Thread(target=lambda: codes.append(launch(spec, plan, train=steady)))
+    driver.start()
+    stopped = None
+    try:
+
+        def reporting_worker():
+            trials = trials_of(url, "stall")
+            trial = next((t for t in trials if t.user_attrs.get("key") == victim.key), None)
+            if trial is None or 100 not in trial.intermediate_values:
+                return None
+            return trial.user_attrs.get("worker")
+
+        stopped = wait_for(reporting_worker, 120, "a report of the victim trial")["pid"]
+        os.kill(stopped, signal.SIGSTOP)
+        driver.join(timeout=90)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(stopped, signal.SIGCONT)  # lets a hung driver finish
+        driver.join(timeout=120)
+    assert codes == [0]
+    trials = trials_of(url, "stall")
+    by_key = check_exact_budget(trials, plan.keys())
+    assert len(trials) == 2
+    retried = by_key[victim.key]
+    assert retried.user_attrs["attempts"] == 2
+    assert "no answer" in retried.user_attrs["worker_deaths"][0]
+    assert retried.user_attrs["resumed_from"] >= 100
