@@ -101,6 +101,8 @@ class TrialConfig:
     threads: int = 1  # torch intra-op threads on CPU
     checkpoint_dir: str | None = None  # None: no checkpoints
     checkpoint_every: int = 5_000
+    # whose checkpoints these are (the sweeper's study id): another owner's are refused
+    checkpoint_owner: str | None = None
     env_kwargs: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -134,7 +136,7 @@ class TrialConfig:
 
 #: TrialConfig fields that change how a trial runs but not its curve (a checkpoint written
 #: under one value resumes under another)
-RUNTIME_FIELDS = ("device", "threads", "checkpoint_dir", "checkpoint_every")
+RUNTIME_FIELDS = ("device", "threads", "checkpoint_dir", "checkpoint_every", "checkpoint_owner")
 
 Outcome = Literal["completed", "diverged"]
 

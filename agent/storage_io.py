@@ -13,10 +13,12 @@ files, such as fsspec's ``local://`` or ``sftp://``, are written in place: not a
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import posixpath
 import re
+import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -102,3 +104,15 @@ def write_atomic(location: str, write: Callable[[BinaryIO], object]) -> None:
         os.fsync(dir_fd)
     finally:
         os.close(dir_fd)
+
+
+def remove(location: str) -> None:
+    """Delete ``location`` and everything under it (a trial's checkpoint folder once its
+    result is recorded); nothing there is fine."""
+    if is_uri(location):
+        fs, path = _filesystem(location)
+        with contextlib.suppress(FileNotFoundError):
+            fs.rm(path, recursive=True)
+        return
+    with contextlib.suppress(FileNotFoundError):
+        shutil.rmtree(_local(location))

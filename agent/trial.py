@@ -204,8 +204,9 @@ def save_checkpoint(location: str, state: dict[str, Any]) -> None:
 
 def load_checkpoint(location: str, config: TrialConfig) -> dict[str, Any] | None:
     """The checkpoint at ``location`` if there is one and it is intact, else None (with a
-    warning if it is corrupt). A checkpoint of another trial config is an error: resuming
-    it would mix two trials."""
+    warning if it is corrupt). A checkpoint of another trial config, or of another owner
+    (``config.checkpoint_owner``, e.g. another study with the same spec), is an error:
+    resuming it would mix two trials."""
     source = storage_io.open_read(location)
     if source is None:
         return None
@@ -218,6 +219,12 @@ def load_checkpoint(location: str, config: TrialConfig) -> dict[str, Any] | None
     except Exception as exc:
         warnings.warn(f"ignoring corrupt checkpoint {location}: {exc}", stacklevel=3)
         return None
+    if state.get("owner") != config.checkpoint_owner:
+        raise ValueError(
+            f"checkpoint_dir {config.checkpoint_dir!r} holds a checkpoint of another study "
+            f"(owner {state.get('owner')!r}, this trial's is {config.checkpoint_owner!r}); "
+            "give each study its own checkpoint_dir"
+        )
     if state["config"] != _config_key(config):
         raise ValueError(
             f"checkpoint_dir {config.checkpoint_dir!r} holds a checkpoint of another trial "
@@ -311,6 +318,7 @@ def _run(
         save_checkpoint(path, {
             "format": CHECKPOINT_FORMAT,
             "config": _config_key(config),
+            "owner": config.checkpoint_owner,
             "step": step,
             "seconds": seconds_before + time.perf_counter() - start,
             "curve": {k: list(v) for k, v in curve.items()},

@@ -17,29 +17,69 @@ import socket
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import ray
+
+#: Ray's switch between cluster mode (listen on every interface) and a single machine
+LOOPBACK_VARIABLE = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+#: set it (to 1) to have a local Ray collect and export metrics
+METRICS_VARIABLE = "RAY_enable_metrics_collection"
 
 
 def start_ray(address: str | None, num_cpus: int | None = None) -> bool:
     """Connect to Ray; return True if this call started it (so the caller shuts it down).
 
     ``address=None`` starts a fresh local instance (``address="local"``: a plain
-    ``ray.init()`` would attach to whatever cluster a stale /tmp/ray file names). An
-    already initialised Ray (e.g. in a notebook or a test) is used as it is.
+    ``ray.init()`` would attach to whatever cluster a stale /tmp/ray file names) that
+    listens on 127.0.0.1 only and exports no metrics unless ``RAY_enable_metrics_collection``
+    says so. An already initialised Ray (e.g. in a notebook or a test) is used as it is.
     """
     if ray.is_initialized():
         return False
     common = {"log_to_driver": False, "logging_level": "WARNING"}
     if address is None:
-        ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, **common)
+        metrics = {} if METRICS_VARIABLE in os.environ else {"enable_metrics_collection": False}
+        with _loopback_only():
+            ray.init(
+                address="local",
+                num_cpus=num_cpus,
+                include_dashboard=False,
+                _node_ip_address="127.0.0.1",
+                _system_config=metrics,
+                **common,
+            )
     else:
         _check_reachable(address)
         ray.init(address=address, **common)
     return True
+
+
+@contextlib.contextmanager
+def _loopback_only() -> Iterator[None]:
+    """Start Ray in its single-machine mode (the one it uses on macOS and Windows): every
+    Ray process binds to 127.0.0.1, where by default they listen on all interfaces and
+    anyone who reaches one can run code here.
+
+    The switch is an environment variable read by each Ray process when it starts, and by
+    this one when it imported ray (then copied into ``ray_constants``), so both are set
+    while Ray starts; its processes keep it, this one gets its own values back.
+    """
+    from ray._private import ray_constants
+
+    saved = os.environ.get(LOOPBACK_VARIABLE), ray_constants.ENABLE_RAY_CLUSTER
+    os.environ[LOOPBACK_VARIABLE] = "0"
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    try:
+        yield
+    finally:
+        if saved[0] is None:
+            os.environ.pop(LOOPBACK_VARIABLE, None)
+        else:
+            os.environ[LOOPBACK_VARIABLE] = saved[0]
+        ray_constants.ENABLE_RAY_CLUSTER = saved[1]
 
 
 def _check_reachable(address: str, timeout: float = 10.0) -> None:
@@ -158,6 +198,15 @@ class _Slot:
     token: str | None = None
     run_ref: Any = None
     drain_ref: Any = None
+    answered: float = 0.0  # monotonic time of the trial's start or its last drain answer
+
+    def stalled(self, now: float, timeout: float) -> str | None:
+        """Why the trial looks hung, or None: its worker's second thread answers ``drain``
+        within milliseconds while the process runs, so ``timeout`` s without an answer
+        means a stopped process or node (which Ray never reports as dead)."""
+        if now - self.answered > timeout:
+            return f"no answer from the worker for {now - self.answered:.0f} s"
+        return None
 
 
 class WorkerPool:
@@ -165,7 +214,9 @@ class WorkerPool:
 
     Only actors that have started count as idle: after a node is lost, a replacement
     actor may wait for resources indefinitely, and a trial handed to it would wait too.
-    ``train`` and ``env`` are passed to each ``TrialWorker``.
+    ``train`` and ``env`` are passed to each ``TrialWorker``. A busy actor that stalls
+    (``_Slot.stalled`` with ``stall_timeout``) is killed and reported ``Lost``, as Ray
+    never notices a stopped process.
     """
 
     def __init__(
@@ -175,7 +226,9 @@ class WorkerPool:
         gpus: float = 0,
         train: Callable[..., Any] | None = None,
         env: str | None = None,
+        stall_timeout: float = 600.0,
     ) -> None:
+        self._stall_timeout = stall_timeout
         self._options = {
             "num_cpus": cpus,
             "num_gpus": gpus,
@@ -230,6 +283,7 @@ class WorkerPool:
         """Start ``config`` on an idle actor; ``token`` names it in the events."""
         slot = self._idle_slots()[0]
         slot.token, slot.run_ref = token, slot.actor.run.remote(token, config)
+        slot.answered = time.monotonic()
 
     def poll(self, timeout: float = 1.0) -> list[Event]:
         """Wait up to ``timeout`` s for a trial to end or an actor to start; return what
@@ -256,6 +310,13 @@ class WorkerPool:
             if slot.run_ref in done:  # a drain in flight holds reports older than run's
                 ray.wait([slot.drain_ref], timeout=10)
             events += self._collect_drain(slot)
+        now = time.monotonic()
+        for index, slot in enumerate(self._slots):
+            why = slot.token and slot.run_ref not in done and slot.stalled(now, self._stall_timeout)
+            if why:
+                events.append(Lost(slot.token, f"{why}: hung or stopped; killed"))
+                ray.kill(slot.actor)
+                self._slots[index] = self._new_slot()
         for index, slot in enumerate(self._slots):
             if slot.token is None or slot.run_ref not in done:
                 continue
@@ -285,6 +346,7 @@ class WorkerPool:
             drained = ray.get(ready[0])
         except ray.exceptions.RayError:
             return []  # the worker is gone; its run ref says so
+        slot.answered = time.monotonic()
         return self._events(slot, drained)
 
     @staticmethod

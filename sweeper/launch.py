@@ -6,13 +6,14 @@ study, gives every plan key that is not done a WAITING trial (``StudyStore.sync`
 hands the keys to a pool of Ray worker actors, one trial per actor at a time. Reports
 stream back as intermediate values; a finished trial is told its AUC.
 
-Failures: a worker that dies is replaced and the trial re-run from its checkpoint, with
-the same parameters and seed, in the same Optuna trial, up to ``execution.retries`` times.
+Failures: a worker that dies, or stops answering for ``execution.stall_timeout`` s, is
+replaced and the trial re-run from its checkpoint, with the same parameters and seed, in
+the same Optuna trial, up to ``execution.retries`` times.
 An exception inside a trial is not retried (a seeded trial fails the same way again): the
 trial is FAIL with ``error`` and ``traceback``, and the next ``sweeper launch`` re-runs it.
 Ctrl-C (or SIGTERM) stops the workers and marks the trials in flight ``interrupted``; a
 relaunch resumes them from their checkpoints. Exit codes: 0 all done, 1 some trials
-failed or another driver runs the study, 2 bad input, 130 interrupted. What trials print
+failed, 2 bad input, 3 another driver runs the study (busy), 130 interrupted. What trials print
 goes to Ray's worker logs (``/tmp/ray/session_latest/logs``), not to the progress display.
 """
 
@@ -25,7 +26,6 @@ import math
 import os
 import signal
 import sys
-import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -37,10 +37,12 @@ if TYPE_CHECKING:
     from sweeper.plan import Plan, PlanEntry
     from sweeper.progress import Progress
     from sweeper.spec import StudySpec
-    from sweeper.storage import StudyStore
+    from sweeper.storage import Heartbeat, StudyStore
 
 #: seconds between the driver's heartbeats in the study
 HEARTBEAT_SECONDS = 15.0
+#: exit code of a launch refused because another live driver runs the study
+EXIT_BUSY = 3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -200,9 +202,27 @@ def launch(
                 f"not execution.max_concurrent={execution.max_concurrent}",
                 file=stream,
             )
-        # the workers start (importing torch and the env) while the driver opens the study
         size = min(fit, execution.max_concurrent, len(plan.entries))
-        pool = WorkerPool(size, cpus=cpus, gpus=gpus, train=train, env=spec.env.name)
+        threads = execution.threads_per_trial
+        refusal = oversubscription(threads, size, ray.cluster_resources().get("CPU", 0))
+        if refusal is not None:
+            print(f"sweeper launch: execution: {refusal}", file=stream)
+            return 2
+        cores = len(os.sched_getaffinity(0))
+        if execution.address is None and threads * size > cores:
+            print(
+                f"sweeper launch: note: {oversubscription(threads, size, cores, 'here')}",
+                file=stream,
+            )
+        # the workers start (importing torch and the env) while the driver opens the study
+        pool = WorkerPool(
+            size,
+            cpus=cpus,
+            gpus=gpus,
+            train=train,
+            env=spec.env.name,
+            stall_timeout=execution.stall_timeout,
+        )
         try:
             return _run_study(spec, plan, pool, stream)
         finally:
@@ -210,6 +230,28 @@ def launch(
     finally:
         if started_ray:
             ray.shutdown()
+
+
+def oversubscription(
+    threads: int, trials: int, cpus: float, where: str = "Ray reports"
+) -> str | None:
+    """Why ``trials`` at once with ``threads`` torch threads each do not fit ``cpus``, and
+    the fix; None when they fit. Torch threads beyond the cores make every trial several
+    times slower (9x measured), not just the extra ones."""
+    if threads * trials <= cpus:
+        return None
+    if threads > cpus:
+        fix = f"lower threads_per_trial to at most {cpus:g}"
+    else:
+        fix = (
+            f"run fewer at once (max_concurrent, --max-concurrent {int(cpus // threads)}), "
+            f"lower threads_per_trial, or reserve them (cpus_per_trial: {threads})"
+        )
+    return (
+        f"threads_per_trial {threads} x {trials} trials at once = {threads * trials} torch "
+        f"threads, more than the {cpus:g} CPUs {where}: every trial would run several times "
+        f"slower; {fix}"
+    )
 
 
 def cannot_reach_message(address: str | None, error: BaseException) -> str:
@@ -234,47 +276,61 @@ def cannot_reach_message(address: str | None, error: BaseException) -> str:
 
 
 def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) -> int:
-    """Open the study as its driver, sync it with the plan and run what is left."""
+    """Open the study as its driver, its heartbeat beating until it lets go; run it."""
     import optuna
 
-    from sweeper.progress import Progress
-    from sweeper.storage import StorageError, StudyBusy, StudyStore, open_storage, redact
+    from sweeper.storage import StorageError, StudyBusy, StudyStore, open_storage
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    url = spec.storage_url
     attrs = study_attrs(spec, plan)
-    storage = open_storage(url)
+    storage = open_storage(spec.storage_url)
     try:
         try:
             store = StudyStore.open_or_create(storage, spec.study, attrs)
             store.claim_driver()
         except (StorageError, StudyBusy) as e:
             print(f"sweeper launch: {e}", file=stream)
-            return 2 if isinstance(e, StorageError) else 1
+            return 2 if isinstance(e, StorageError) else EXIT_BUSY
         try:
-            if store.attrs.get("revision") != attrs["revision"]:
-                print(
-                    f"sweeper launch: note: the study began at code revision "
-                    f"{store.attrs.get('revision')}; this is {attrs['revision']}",
-                    file=stream,
-                )
-            todo = store.sync(plan.entries, plan.hash)
-            total = len(plan.entries)
-            print(
-                f"study {spec.study!r} in {redact(url)}: {total - len(todo)} of {total} "
-                f"trials done, {len(todo)} to run",
-                file=stream,
-            )
-            if not todo:
-                return 0
-            pool.shrink(len(todo))
-            progress = Progress(spec.study, plan.keys(), spec.budget.env_steps, stream)
-            return _drive(spec, store, todo, pool, progress, stream)
+            with store.heartbeats(HEARTBEAT_SECONDS) as beat:
+                if store.attrs.get("revision") != attrs["revision"]:
+                    print(
+                        f"sweeper launch: note: the study began at code revision "
+                        f"{store.attrs.get('revision')}; this is {attrs['revision']}",
+                        file=stream,
+                    )
+                return _sync_and_drive(spec, store, pool, beat, stream)
+        except StudyBusy as e:  # a heartbeat found another driver: this one looked dead
+            print(f"sweeper launch: stopped: {e}", file=stream)
+            return EXIT_BUSY
         finally:
             store.release_driver()
     finally:
         storage.remove_session()
         storage.engine.dispose()
+
+
+def _sync_and_drive(
+    spec: StudySpec, store: StudyStore, pool: WorkerPool, beat: Heartbeat, stream: TextIO
+) -> int:
+    """Give the plan's keys their trials, then run what is left."""
+    from sweeper.plan import build_plan
+    from sweeper.progress import Progress
+    from sweeper.storage import redact
+
+    plan = build_plan(spec, study_uid=store.study_uid)  # its checkpoints are its own
+    todo = store.sync(plan.entries, plan.hash)
+    total = len(plan.entries)
+    print(
+        f"study {spec.study!r} in {redact(spec.storage_url)}: {total - len(todo)} of {total} "
+        f"trials done, {len(todo)} to run",
+        file=stream,
+    )
+    if not todo:
+        return 0
+    pool.shrink(len(todo))
+    progress = Progress(spec.study, plan.keys(), spec.budget.env_steps, stream)
+    return _drive(spec, store, todo, pool, progress, beat, stream)
 
 
 def _drive(
@@ -283,6 +339,7 @@ def _drive(
     todo: list[tuple[PlanEntry, Any]],
     pool: WorkerPool,
     progress: Progress,
+    beat: Heartbeat,
     stream: TextIO,
 ) -> int:
     """The driver loop: dispatch keys to workers, write what comes back."""
@@ -295,7 +352,6 @@ def _drive(
     try:
         queue = deque(todo)
         failed = 0
-        last_beat = time.monotonic()
         for entry, _ in todo:
             progress.set_state(entry.key, "left")
 
@@ -342,6 +398,8 @@ def _drive(
                 elif isinstance(event, Finished):
                     _record_result(store, job, event.result)
                     del jobs[event.token]
+                    if not execution.keep_checkpoints:
+                        _remove_checkpoint(job.entry, progress)
                     outcome = event.result.outcome
                     progress.set_state(job.entry.key, outcome)
                     progress.note(f"{job.entry.key} {outcome}: AUC {event.result.auc:.3f}")
@@ -357,9 +415,7 @@ def _drive(
                     else:
                         error = f"worker died {job.attempts} times; last: {event.error}"
                         give_up(job, {"error": error})
-            if time.monotonic() - last_beat > HEARTBEAT_SECONDS:
-                store.heartbeat()
-                last_beat = time.monotonic()
+            beat.check()  # stops this driver if another one took the study over
             progress.refresh()
         progress.refresh(force=True)
         progress.close()
@@ -404,6 +460,20 @@ def _record_result(store: StudyStore, job: _Job, result: Any) -> None:
         attrs["diverged_step"] = result.diverged_step
         attrs["diverged_loss"] = result.diverged_loss
     store.complete(job.trial_id, result.auc, attrs)
+
+
+def _remove_checkpoint(entry: PlanEntry, progress: Progress) -> None:
+    """Delete a recorded trial's checkpoint folder: it is never resumed again, and a
+    study of thousands of trials would otherwise keep every replay buffer on disk."""
+    from agent.storage_io import remove
+
+    location = entry.trial_config.checkpoint_dir
+    if location is None:
+        return
+    try:
+        remove(location)
+    except Exception as e:  # the result is recorded: a checkpoint left over is no error
+        progress.note(f"{entry.key}: could not remove its checkpoint {location}: {e}")
 
 
 def _sigterm_to_interrupt() -> Any:

@@ -58,8 +58,15 @@ def trial_key(method: str, config_id: int, seed: int) -> str:
     return f"{method}/{config_id}/{seed}"
 
 
-def build_plan(spec: StudySpec) -> Plan:
-    """Sample the plan of ``spec``; the same spec always gives the same plan and hash."""
+def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
+    """Sample the plan of ``spec``; the same spec always gives the same plan and hash.
+
+    Checkpoints: ``<checkpoints>/<folder>/<method>/<config_id>/<seed>``. A plan bound to a
+    study (``study_uid``, the random id the study got when it was first driven) has the
+    folder ``<study>-<study_uid>`` and names the study the checkpoints' owner, so a new
+    database with the same spec never resumes another study's checkpoints; unbound, the
+    folder is the plan hash's first 12 characters.
+    """
     sac_space = spec.sac.space()
     sac_configs = sample_configs(sac_space, spec.trials_per_method, derive_rng(spec.seed, "sac"))
     sac_choices = {name: tuple(param_value(c) for c in cs) for name, cs in sac_space.items()}
@@ -107,6 +114,7 @@ def build_plan(spec: StudySpec) -> Plan:
     ]
     text = json.dumps({"version": 1, "entries": canonical}, sort_keys=True, separators=(",", ":"))
     plan_hash = hashlib.sha256(text.encode()).hexdigest()
+    folder = plan_hash[:12] if study_uid is None else f"{spec.study}-{study_uid}"
 
     entries = tuple(
         PlanEntry(
@@ -118,7 +126,8 @@ def build_plan(spec: StudySpec) -> Plan:
             choices=dict(choices),
             trial_config=dataclasses.replace(
                 config,
-                checkpoint_dir=f"{spec.checkpoint_dir}/{plan_hash[:12]}/{method}/{config_id}/{seed}",
+                checkpoint_dir=f"{spec.checkpoint_dir}/{folder}/{method}/{config_id}/{seed}",
+                checkpoint_owner=study_uid,
             ),
         )
         for method, config_id, seed, params, choices, config in drafts

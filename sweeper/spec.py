@@ -437,6 +437,14 @@ class Execution(_Strict):
     threads_per_trial: PosInt = 1
     retries: NonNegInt = Field(2, description="re-runs of a trial whose worker died")
     checkpoint_every: PosInt = Field(5000, description="env steps between checkpoints")
+    stall_timeout: PosFloat = Field(
+        600.0,
+        description="seconds a busy worker may go without answering (a stopped process or "
+        "node) before its trial is retried from its checkpoint as a dead worker's",
+    )
+    keep_checkpoints: bool = Field(
+        False, description="keep a finished trial's checkpoint (false: removed once recorded)"
+    )
 
     @field_validator("address")
     @classmethod

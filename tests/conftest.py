@@ -5,13 +5,16 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
+import psycopg
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 CI_SPEC = ROOT / "studies" / "ci.yaml"
+PG_ADMIN = "host=127.0.0.1 port=5432 dbname=test user=postgres"
 
 
 @dataclass(frozen=True)
@@ -55,3 +58,14 @@ def ci_aggregate(ci_study: CIStudy) -> Path:
         os.chdir(here)
     assert code == 0, "sweeper aggregate studies/ci.yaml failed"
     return ci_study.workdir / "runs" / "ci" / "aggregate"
+
+
+@pytest.fixture
+def pg_url():
+    """A fresh PostgreSQL schema on the local server, dropped afterwards."""
+    schema = f"sweeper_test_{uuid.uuid4().hex[:10]}"
+    with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
+        connection.execute(f"CREATE SCHEMA {schema}")
+    yield f"postgresql://postgres@127.0.0.1:5432/test?options=-csearch_path%3D{schema}"
+    with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
+        connection.execute(f"DROP SCHEMA {schema} CASCADE")

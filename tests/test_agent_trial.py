@@ -190,6 +190,21 @@ def test_checkpoint_of_another_config_is_refused(tmp_path: Path) -> None:
         agent.train(other)
 
 
+def test_checkpoint_of_another_study_is_refused(tmp_path: Path) -> None:
+    """A checkpoint names the study that wrote it: another study's is never resumed."""
+    config = tiny(
+        total_steps=100,
+        seed_steps=100,
+        checkpoint_every=50,
+        checkpoint_dir=str(tmp_path),
+        checkpoint_owner="study-a",
+    )
+    agent.train(config)
+    with pytest.raises(ValueError, match="another study"):
+        agent.train(dataclasses.replace(config, checkpoint_owner="study-b"))
+    assert agent.train(config).resumed_from == 50  # its own study resumes it
+
+
 def test_bad_names_are_clear_errors() -> None:
     with pytest.raises(ValueError, match="method"):
         agent.train(tiny(method="pixle"))

@@ -28,6 +28,7 @@ from sweeper.storage import open_storage
 ROOT = Path(__file__).resolve().parent.parent
 CI_SPEC = ROOT / "studies" / "ci.yaml"
 optuna.logging.set_verbosity(optuna.logging.WARNING)
+ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake trains below
 
 
 @pytest.fixture(scope="module")
@@ -96,7 +97,7 @@ def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path, ray_ad
     )
     spec, plan = prepare(str(spec_path))
     victim = plan.entries[0]
-    checkpoint = Path(victim.trial_config.checkpoint_dir) / "checkpoint.pt"
+    checkpoints = tmp_path / "checkpoints"  # the study's folder is named when it starts
     codes = []
     driver = threading.Thread(target=lambda: codes.append(launch(spec, plan)))
     driver.start()
@@ -106,7 +107,8 @@ def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path, ray_ad
             trial = next(
                 (t for t in trials_of(url, "faults") if t.user_attrs.get("key") == victim.key), None
             )
-            if trial is None or trial.state != TrialState.RUNNING or not checkpoint.exists():
+            checkpointed = any(checkpoints.glob(f"*/{victim.key}/checkpoint.pt"))
+            if trial is None or trial.state != TrialState.RUNNING or not checkpointed:
                 return None
             return trial.user_attrs.get("worker")
 
@@ -228,3 +230,138 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, ray_
             assert successor.user_attrs["key"] == trial.user_attrs["key"]
             assert trial.number in successor.user_attrs["supersedes"]
     assert all(t.user_attrs["curve"]["step"] == [0, 100, 200] for t in by_key.values())
+
+
+RACER = """
+import sys, time
+from agent.config import TrialResult
+from sweeper.launch import launch, prepare
+from sweeper.storage import StudyStore
+
+spec_path, release = sys.argv[1], float(sys.argv[2])
+claim = StudyStore.claim_driver
+
+
+def claim_when_released(self):
+    while time.time() < release:  # both launches claim in the same millisecond
+        pass
+    claim(self)
+
+
+def quick(config, report=None):
+    report(0, {"success_rate": 0.0, "final_distance": 1.0})
+    time.sleep(0.5)
+    steps = (0, config.total_steps)
+    metrics = {"success_rate": (0.0, 1.0), "final_distance": (1.0, 0.0)}
+    return TrialResult(steps=steps, metrics=metrics, auc=0.5)
+
+
+StudyStore.claim_driver = claim_when_released
+spec, plan = prepare(spec_path)
+sys.exit(launch(spec, plan, train=quick))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_two_launches_released_together_run_the_budget_once(
+    tmp_path, ray_address, backend, request
+):
+    """One launch drives, the other exits 3 (busy) with one line; 4 keys, 4 trials."""
+    url = (
+        f"sqlite:///{tmp_path / 'study.db'}"
+        if backend == "sqlite"
+        else request.getfixturevalue("pg_url")
+    )
+    spec = write_spec(
+        tmp_path / "spec.yaml",
+        study="race",
+        trials_per_method=2,
+        storage=url,
+        checkpoints=str(tmp_path / "checkpoints"),
+        execution={"address": ray_address},
+    )
+    keys = prepare(str(spec))[1].keys()
+    assert len(keys) == 4
+    release = time.time() + 25  # both have joined Ray and opened the study by then
+    racers = [
+        subprocess.Popen(
+            [sys.executable, "-c", RACER, str(spec), str(release)],
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=tmp_path,
+        )
+        for _ in range(2)
+    ]
+    results = sorted((r.wait(timeout=240), r.stderr.read()) for r in racers)
+    assert time.time() > release + 0.5  # the race really happened at the release
+    assert [code for code, _ in results] == [0, 3], results
+    busy = results[1][1].strip()
+    assert len(busy.splitlines()) == 1, busy
+    assert busy.startswith("sweeper launch: another `sweeper launch` drives this study")
+    trials = trials_of(url, "race")
+    check_exact_budget(trials, keys)
+    assert len(trials) == 4
+
+
+def steady(config, report=None):
+    """A trial that evaluates every 1.5 s and checkpoints (a marker file) after each."""
+    from agent.config import TrialResult
+
+    marker = Path(config.checkpoint_dir) / "checkpoint.pt"
+    resumed_from = int(marker.read_text()) if marker.exists() else None
+    steps = list(range(0, config.total_steps + 1, config.eval_every))
+    for step in steps:
+        if resumed_from is None or step > resumed_from:
+            time.sleep(1.5)
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            marker.write_text(str(step))
+        report(step, {"success_rate": 0.0, "final_distance": 1.0})
+    metrics = {"success_rate": (0.0,) * len(steps), "final_distance": (1.0,) * len(steps)}
+    return TrialResult(steps=tuple(steps), metrics=metrics, auc=0.0, resumed_from=resumed_from)
+
+
+@pytest.mark.slow
+def test_a_stopped_worker_is_noticed_and_its_trial_retried(tmp_path, ray_address):
+    """A worker that stops answering (SIGSTOP: a frozen process or node) is treated as
+    dead after execution.stall_timeout: its trial re-runs from its checkpoint, exactly once."""
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    spec_path = write_spec(
+        tmp_path / "spec.yaml",
+        study="stall",
+        seeds=[0, 1],
+        methods={"pixel": {}},
+        storage=url,
+        checkpoints=str(tmp_path / "checkpoints"),
+        execution={"retries": 1, "stall_timeout": 4},
+    )
+    spec, plan = prepare(str(spec_path))
+    victim = plan.entries[0]
+    codes = []
+    driver = threading.Thread(target=lambda: codes.append(launch(spec, plan, train=steady)))
+    driver.start()
+    stopped = None
+    try:
+
+        def reporting_worker():
+            trials = trials_of(url, "stall")
+            trial = next((t for t in trials if t.user_attrs.get("key") == victim.key), None)
+            if trial is None or 100 not in trial.intermediate_values:
+                return None
+            return trial.user_attrs.get("worker")
+
+        stopped = wait_for(reporting_worker, 120, "a report of the victim trial")["pid"]
+        os.kill(stopped, signal.SIGSTOP)
+        driver.join(timeout=90)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(stopped, signal.SIGCONT)  # lets a hung driver finish
+        driver.join(timeout=120)
+    assert codes == [0]
+    trials = trials_of(url, "stall")
+    by_key = check_exact_budget(trials, plan.keys())
+    assert len(trials) == 2
+    retried = by_key[victim.key]
+    assert retried.user_attrs["attempts"] == 2
+    assert "no answer" in retried.user_attrs["worker_deaths"][0]
+    assert retried.user_attrs["resumed_from"] >= 100

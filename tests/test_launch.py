@@ -252,6 +252,58 @@ def test_exception_and_divergence_are_recorded_then_relaunch_reruns_failed(tmp_p
     assert trials[diverged.number].datetime_complete == diverged.datetime_complete
 
 
+def resume_marker(config, report=None):
+    """Resumes from a marker file in its checkpoint_dir (as a checkpoint), else writes one."""
+    marker = Path(config.checkpoint_dir) / "checkpoint.pt"
+    resumed_from = int(marker.read_text()) if marker.exists() else None
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    marker.write_text("100")
+    report(0, {"success_rate": 0.0, "final_distance": 1.0})
+    return fake_result(
+        config, [0.0, 1.0, 1.0, 1.0], [1.0, 0.0, 0.0, 0.0], resumed_from=resumed_from
+    )
+
+
+@pytest.mark.parametrize("keep", [None, True])
+def test_a_new_study_with_the_same_spec_starts_every_trial_from_step_0(tmp_path, keep):
+    """Checkpoints belong to one study: a new database with the same spec and checkpoint
+    root resumes nothing; finished trials' checkpoints are removed unless kept."""
+    root = tmp_path / "checkpoints"
+    execution = yaml.safe_load(CI_SPEC.read_text())["execution"]
+    if keep is not None:
+        execution["keep_checkpoints"] = keep
+    for studies, database in enumerate(("first.db", "second.db"), start=1):
+        url = f"sqlite:///{tmp_path / database}"
+        spec_path = write_spec(
+            tmp_path / "ci.yaml", storage=url, checkpoints=str(root), execution=execution
+        )
+        assert launch(*prepare(str(spec_path)), train=resume_marker) == 0
+        trials = load(url).get_trials()
+        assert [t.user_attrs["resumed_from"] for t in trials] == [None, None]
+        assert len(list(root.rglob("checkpoint.pt"))) == (2 * studies if keep else 0)
+    if keep:  # one folder per study
+        assert len({p.relative_to(root).parts[0] for p in root.rglob("checkpoint.pt")}) == 2
+
+
+def test_more_torch_threads_than_cpus_is_refused_with_the_fix(tmp_path):
+    """threads_per_trial x trials at once above Ray's CPUs runs every trial several times
+    slower: refused (exit 2) before the study is touched, naming the fields to change."""
+    import io
+
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    execution = {**yaml.safe_load(CI_SPEC.read_text())["execution"], "threads_per_trial": 2}
+    spec_path = write_spec(tmp_path / "ci.yaml", storage=url, execution=execution)
+    stream = io.StringIO()
+    assert launch(*prepare(str(spec_path)), train=always_succeed, stream=stream) == 2
+    message = stream.getvalue().strip()
+    assert len(message.splitlines()) == 1, message
+    assert message.startswith("sweeper launch: execution: threads_per_trial 2 x 2 trials")
+    assert "2 CPUs" in message and "--max-concurrent 1" in message
+    assert not (tmp_path / "study.db").exists()
+    stream = io.StringIO()  # one trial at a time fits
+    assert launch(*prepare(str(spec_path), max_concurrent=1), train=always_succeed) == 0
+
+
 def test_progress_display():
     import io
 
@@ -303,6 +355,40 @@ def test_unreachable_ray_address_exits_2_and_writes_nothing(tmp_path):
     assert "nothing answers at 127.0.0.1:1" in done.stderr
     assert "RAY_AUTH_MODE" not in done.stderr  # no token hint when nothing listens
     assert list(tmp_path.iterdir()) == []
+
+
+LOCAL_RAY = """
+import json
+from sweeper.execution import start_ray
+import ray, psutil  # Ray vendors psutil
+start_ray(None, num_cpus=1)
+node = ray._private.worker._global_node
+family = {node_pid.pid for node_pid in psutil.Process().children(recursive=True)}
+listening = sorted({c.laddr.ip for c in psutil.net_connections("inet")
+                    if c.status == "LISTEN" and c.pid in family | {psutil.Process().pid}})
+print(json.dumps({"node_ip": node.node_ip_address, "gcs": node.gcs_address,
+                  "listening": listening, "system_config": node._ray_params._system_config}))
+ray.shutdown()
+"""
+
+
+def test_a_local_ray_listens_on_the_loopback_only_without_metrics():
+    """Nothing a local study starts is reachable from another machine."""
+    import ipaddress
+    import json
+    import subprocess
+
+    done = subprocess.run(
+        [sys.executable, "-c", LOCAL_RAY], capture_output=True, text=True, timeout=180, check=True
+    )
+    ray_node = json.loads(done.stdout.splitlines()[-1])
+    assert ray_node["node_ip"] == "127.0.0.1"
+    assert ray_node["gcs"].startswith("127.0.0.1:")
+    assert ray_node["listening"]
+    for ip in ray_node["listening"]:
+        address = ipaddress.ip_address(ip)
+        assert (getattr(address, "ipv4_mapped", None) or address).is_loopback, ray_node
+    assert ray_node["system_config"].get("enable_metrics_collection") is False
 
 
 def test_a_refused_connection_names_token_authentication(monkeypatch):

@@ -9,11 +9,9 @@ import sqlite3
 import subprocess
 import sys
 import time
-import uuid
 from dataclasses import dataclass, field
 
 import optuna
-import psycopg
 import pytest
 from optuna.trial import TrialState
 
@@ -27,11 +25,11 @@ from sweeper.storage import (
     database_error,
     ledger,
     open_storage,
+    process_start,
     resolve_url,
 )
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
-PG_ADMIN = "host=127.0.0.1 port=5432 dbname=test user=postgres"
 
 
 @dataclass(frozen=True)
@@ -55,17 +53,6 @@ ENTRIES = [Entry(m, c, 0) for m in ("pixel", "vae") for c in range(2)]
 @pytest.fixture
 def sqlite_url(tmp_path):
     return f"sqlite:///{tmp_path / 'sub' / 'study.db'}"
-
-
-@pytest.fixture
-def pg_url():
-    """A fresh PostgreSQL schema on the local server, dropped afterwards."""
-    schema = f"sweeper_test_{uuid.uuid4().hex[:10]}"
-    with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
-        connection.execute(f"CREATE SCHEMA {schema}")
-    yield f"postgresql://postgres@127.0.0.1:5432/test?options=-csearch_path%3D{schema}"
-    with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
-        connection.execute(f"DROP SCHEMA {schema} CASCADE")
 
 
 def test_database_error_is_one_line_without_the_password():
@@ -254,3 +241,150 @@ def test_driver_lock(sqlite_url):
     store.claim_driver()  # its heartbeat is stale
     store.release_driver()
     assert store.attrs["driver"] is None
+
+
+CLAIMER = """
+import json, sys, time
+import optuna
+from sweeper.storage import StudyBusy, StudyStore, open_storage
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+url, start, rounds = sys.argv[1], float(sys.argv[2]), int(sys.argv[3])
+store = StudyStore.find(open_storage(url, create=False), "race")
+results = []
+for i in range(rounds):
+    while time.time() < start + i:  # every claimer is released at the same instant
+        pass
+    try:
+        store.claim_driver()
+        results.append("ok")
+        time.sleep(0.5)
+        store.release_driver()
+    except StudyBusy:
+        results.append("busy")
+print(json.dumps(results))
+"""
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_two_processes_released_together_never_both_claim(backend, request):
+    """The claim is one atomic step: of two claimers released in the same millisecond,
+    exactly one becomes the driver, round after round."""
+    url = request.getfixturevalue("sqlite_url" if backend == "sqlite" else "pg_url")
+    StudyStore.open_or_create(open_storage(url), "race", {"plan_hash": "h"})
+    rounds, start = 6, time.time() + 8  # both have imported optuna by then
+    claimers = [
+        subprocess.Popen(
+            [sys.executable, "-c", CLAIMER, url, str(start), str(rounds)],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]
+    outcomes = [json.loads(c.communicate(timeout=120)[0]) for c in claimers]
+    for round_ in zip(*outcomes, strict=True):
+        assert sorted(round_) == ["busy", "ok"], outcomes
+
+
+def test_a_live_driver_is_not_taken_over_whatever_its_heartbeat(sqlite_url):
+    """On its own host a driver is alive while its process is (pid and start time), even if
+    its heartbeat is old (a setup longer than DRIVER_STALE_SECONDS); a reused pid is not."""
+    store = StudyStore.open_or_create(open_storage(sqlite_url), "live", {"plan_hash": "h"})
+    driver = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    try:
+        record = {"host": socket.gethostname(), "pid": driver.pid, "heartbeat": time.time() - 3600}
+        started = process_start(driver.pid)
+        assert started is not None
+        store.storage.set_study_user_attr(store.study_id, "driver", {**record, "started": started})
+        with pytest.raises(StudyBusy, match=f"pid {driver.pid}"):
+            store.claim_driver()
+        assert store.driver_alive()
+        reused = {**record, "started": started - 1}  # the same pid, another process
+        store.storage.set_study_user_attr(store.study_id, "driver", reused)
+        assert not store.driver_alive()
+        store.claim_driver()
+    finally:
+        driver.kill()
+        driver.wait()
+
+
+def test_the_heartbeat_beats_while_the_driver_is_busy(sqlite_url):
+    """A thread keeps the record fresh while the driver's own thread is busy (a long sync)."""
+    store = StudyStore.open_or_create(open_storage(sqlite_url), "beat", {"plan_hash": "h"})
+    store.claim_driver()
+    with store.heartbeats(interval=0.1) as beat:
+        first = store.attrs["driver"]["heartbeat"]
+        time.sleep(1.0)  # busy, no heartbeat call from this thread
+        assert store.attrs["driver"]["heartbeat"] > first + 0.5
+        taken = {"host": "elsewhere", "pid": 1, "heartbeat": time.time() + 3600}
+        store.storage.set_study_user_attr(store.study_id, "driver", taken)
+        time.sleep(0.5)
+        with pytest.raises(StudyBusy, match="host elsewhere"):
+            beat.check()  # another driver took the study over: this one must stop
+    assert store.attrs["driver"] == taken  # and its record is left alone
+
+
+def test_sync_repairs_orphans_of_an_interrupted_setup(sqlite_url):
+    """Trials that are WAITING or RUNNING but no key's current trial (left by a setup cut
+    short or by an older race) are failed as interrupted, pointing to their successor."""
+    store = StudyStore.open_or_create(open_storage(sqlite_url), "orphans", {"plan_hash": "h"})
+    entry = ENTRIES[0]
+    attrs = {"key": entry.key, "method": entry.method, "config_id": 0, "seed": 0}
+    orphan = store.add_waiting(entry.params, entry.choices, attrs)
+    current = store.add_waiting(entry.params, entry.choices, attrs)
+    stray = store.add_waiting(entry.params, entry.choices, {})  # no key at all
+    todo = store.sync(ENTRIES, "h")
+    assert todo[0][1].number == current.number
+    trials = {t.number: t for t in store.trials()}
+    assert trials[orphan.number].state == TrialState.FAIL
+    assert trials[orphan.number].user_attrs["outcome"] == "interrupted"
+    assert trials[orphan.number].user_attrs["superseded_by"] == current.number
+    assert trials[stray.number].state == TrialState.FAIL
+    assert [t.state for t in store.trials()].count(TrialState.WAITING) == len(ENTRIES)
+
+
+TAKEOVER = """
+import sys
+from sweeper import storage
+storage.DRIVER_STALE_SECONDS = 0.0
+store = storage.StudyStore.find(storage.open_storage(sys.argv[1], create=False), "big")
+try:
+    store.claim_driver()
+    print("taken over")
+except storage.StudyBusy:
+    print("busy")
+"""
+
+
+def test_sync_creates_5000_trials_in_seconds_on_postgresql(pg_url):
+    """The plan's trials are created in bulk: 5,000 keys well within the driver's heartbeat."""
+    entries = [Entry(m, c, s) for m in ("pixel", "vae") for c in range(250) for s in range(10)]
+    store = StudyStore.open_or_create(open_storage(pg_url), "big", {"plan_hash": "h"})
+    store.claim_driver()
+    start = time.perf_counter()
+    todo = store.sync(entries, "h")
+    seconds = time.perf_counter() - start
+    print(f"sync of {len(entries)} entries: {seconds:.1f} s")
+    assert seconds < 30
+    assert [entry.key for entry, _ in todo] == [e.key for e in entries]
+    trials = store.trials()
+    assert len(trials) == 5000 and {t.state for t in trials} == {TrialState.WAITING}
+    assert sorted(t.number for t in trials) == list(range(5000))
+    last = todo[-1][1]
+    assert last.params == {"lr": 1e-3}
+    assert last.user_attrs == {
+        "method": "vae",
+        "config_id": 249,
+        "seed": 9,
+        "key": "vae/249/9",
+        "plan_hash": "h",
+        "attempts": 0,
+    }
+    takeover = subprocess.run(  # even with every heartbeat counted stale
+        [sys.executable, "-c", TAKEOVER, pg_url], capture_output=True, text=True, timeout=120
+    )
+    assert takeover.stdout.strip() == "busy", takeover.stderr[-2000:]
+    again = store.sync(entries, "h")
+    assert [t.number for _, t in again] == [t.number for _, t in todo]
+    store.start(last._trial_id)  # Optuna reads and writes what was created in bulk
+    store.complete(last._trial_id, 0.5, {"outcome": "completed"})
+    assert optuna.load_study(study_name="big", storage=open_storage(pg_url)).trials[-1].value == 0.5
