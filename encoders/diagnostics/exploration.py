@@ -18,12 +18,12 @@ def random_exploration(
     progress: bool = True,
 ) -> pd.DataFrame:
     """Share of ``episodes`` random-action episodes of ``steps`` steps in which the goal is
-    reached at any step. Episode ``k`` starts from ``env.reset(seed=seed + k)``, so nothing
-    an earlier analysis left behind reaches it.
+    reached (``info["is_success"]``) at any step. Episode ``k`` starts from
+    ``env.reset(seed=seed + k)``, so nothing an earlier analysis left behind reaches it.
 
-    "Reached" means any ``*success`` flag in ``info`` is set (for the door: the angle or
-    the hand success, as well as both). Rows (encoder ``"none"``): ``success_rate`` and
-    ``<flag>_rate`` for every success flag of the env (e.g. ``is_success_rate``).
+    Rows (encoder ``"none"``): ``success_rate`` (the task's success), then ``<flag>_rate``
+    for every other ``*success`` flag of the env (the door: ``angle_success_rate`` and
+    ``hand_success_rate``, each part of the goal alone).
     """
     env.action_space.seed(seed)
     hits: dict[str, list[bool]] = {}
@@ -37,8 +37,7 @@ def random_exploration(
                 if key.endswith("success"):
                     reached[key] = reached.get(key, False) or bool(value)
         for key, value in reached.items():
-            hits.setdefault(key, []).append(value)
-        hits.setdefault("success", []).append(any(reached.values()))
+            hits.setdefault(key.removeprefix("is_"), []).append(value)
         bar.update(episode + 1)
     keys = ["success", *(k for k in hits if k != "success")]
     rows = [
