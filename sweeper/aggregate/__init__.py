@@ -55,9 +55,13 @@ from sweeper.aggregate.tables import (
     AUC_COLUMNS,
     CONFIDENCE,
     RESAMPLES,
+    Tables,
     auc_table,
     improvement_table,
+    iqm_curves,
     method_curves,
+    profile_table,
+    study_tables,
 )
 
 if TYPE_CHECKING:
@@ -72,15 +76,20 @@ __all__ = [
     "TRIAL_COLUMNS",
     "AggregateResult",
     "StudyInfo",
+    "Tables",
     "aggregate",
     "auc_table",
     "improvement_table",
+    "iqm_curves",
     "load_study_frame",
+    "method_curves",
     "methods_of",
     "metric_label",
+    "profile_table",
     "replace_note_section",
     "scored",
     "study_info",
+    "study_tables",
     "table_markdown",
     "trial_rows",
 ]
@@ -121,16 +130,36 @@ def run(args: argparse.Namespace) -> int:
 # ---- the whole command ---------------------------------------------------------------
 
 
+#: the CSV files of one study's aggregation, and the tables they hold
+CSV_FILES = {
+    "curves.csv": "curves",
+    "efficiency.csv": "efficiency",
+    "profiles.csv": "profiles",
+    "auc_table.csv": "table",
+    "improvement.csv": "improvement",
+}
+
+
 @dataclass(frozen=True)
 class AggregateResult:
     """What ``aggregate`` computed and wrote."""
 
     frame: pd.DataFrame
-    curves: pd.DataFrame
-    table: pd.DataFrame
-    improvement: pd.DataFrame
+    tables: Tables
     files: tuple[Path, ...]
     report: Path
+
+    @property
+    def curves(self) -> pd.DataFrame:
+        return self.tables.curves
+
+    @property
+    def table(self) -> pd.DataFrame:
+        return self.tables.table
+
+    @property
+    def improvement(self) -> pd.DataFrame:
+        return self.tables.improvement
 
 
 def aggregate(
@@ -161,20 +190,15 @@ def aggregate(
     try:
         store = StudyStore.find(storage, study_name)
         alive = store is not None and store.driver_alive()
-        curves = method_curves(frame)
-        table = auc_table(frame, driver_alive=alive, seed=seed)
-        improvement = improvement_table(frame)
-        out.mkdir(parents=True, exist_ok=True)
-        files = [out / n for n in ("frame.csv", "curves.csv", "auc_table.csv", "improvement.csv")]
-        for path, data in zip(files, (frame, curves, table, improvement), strict=True):
-            data.to_csv(path, index=False)
-        say(f"computed the AUC table and curves; drawing figures in {out}")
-        figures = draw_figures(frame, curves, table, out)
+        tables = study_tables(frame, driver_alive=alive, seed=seed)
+        say(f"computed the tables in {time.perf_counter() - start:.1f} s; writing to {out}")
+        files = write_tables(frame, tables, out)
+        figures = draw_figures(frame, tables, out)
         report = out / "report.md"
-        report.write_text(report_markdown(frame, table, improvement, alive), encoding="utf-8")
+        report.write_text(report_markdown(frame, tables, alive), encoding="utf-8")
         if dashboard and store is not None:
             try:
-                save_to_dashboard(storage, store.study_id, frame, curves, table, improvement)
+                save_to_dashboard(storage, frame, tables)
                 say("saved the comparison figures and note into the study (optuna-dashboard)")
             except (SQLAlchemyError, optuna.exceptions.StorageInternalError) as e:
                 # e.g. a read-only database: the files are written, say so and go on
@@ -183,4 +207,13 @@ def aggregate(
         storage.remove_session()
         storage.engine.dispose()
     say(f"aggregated in {time.perf_counter() - start:.1f} s")
-    return AggregateResult(frame, curves, table, improvement, (*files, *figures, report), report)
+    return AggregateResult(frame, tables, (*files, *figures, report), report)
+
+
+def write_tables(frame: pd.DataFrame, tables: Tables, out: Path) -> list[Path]:
+    """``frame.csv`` and the ``CSV_FILES`` under ``out``; returns their paths."""
+    out.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(out / "frame.csv", index=False)
+    for name, field in CSV_FILES.items():
+        getattr(tables, field).to_csv(out / name, index=False)
+    return [out / "frame.csv", *(out / name for name in CSV_FILES)]

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sweeper.aggregate.frame import methods_of, scored, study_info, trial_rows
-from sweeper.aggregate.tables import CONFIDENCE
+from sweeper.aggregate.tables import CONFIDENCE, Tables
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -28,15 +28,79 @@ def metric_label(metric: str, env: str | None = None) -> str:
     return name
 
 
-def draw_figures(
-    frame: pd.DataFrame, curves: pd.DataFrame, table: pd.DataFrame, out: Path
-) -> list[Path]:
+def draw_figures(frame: pd.DataFrame, tables: Tables, out: Path) -> list[Path]:
     """Write the PNG figures; return their paths."""
+    title = study_info(frame).name
     return [
-        _draw_mean_curves(frame, curves, out / "curves.png"),
+        draw_efficiency(tables.efficiency, out / "efficiency.png", title, env_of(frame)),
+        draw_profiles(tables.profiles, out / "profiles.png", title),
+        _draw_mean_curves(frame, tables.curves, out / "curves.png"),
         _draw_trial_curves(frame, out / "trials.png"),
-        _draw_auc(frame, table, out / "auc.png"),
+        _draw_auc(frame, tables.table, out / "auc.png"),
     ]
+
+
+def _method_colours(methods: list[str]) -> dict[str, str]:
+    return {m: f"C{i % 10}" for i, m in enumerate(methods)}
+
+
+def draw_efficiency(
+    efficiency: pd.DataFrame, path: Path, title: str, env: str | None = None
+) -> Path:
+    """Sample-efficiency curves: per method the IQM of the success rate with its band."""
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(7.5, 4.8), layout="constrained")
+    axes = figure.add_subplot()
+    methods = list(dict.fromkeys(efficiency["method"]))
+    for method, colour in _method_colours(methods).items():
+        part = efficiency[efficiency["method"] == method]
+        steps = part["step"].to_numpy(dtype=float)
+        label = f"{method} (n = {int(part['n'].max())})"
+        axes.plot(steps, part["iqm"], color=colour, label=label)
+        axes.fill_between(steps, part["low"], part["high"], color=colour, alpha=0.2, lw=0)
+    if methods:
+        axes.legend(title="method (done trials)", fontsize="small")
+    else:
+        axes.text(0.5, 0.5, "no done trial yet", ha="center", transform=axes.transAxes)
+    axes.set_title(f"{title}: IQM success rate, {CONFIDENCE:.0%} bootstrap bands")
+    axes.set_xlabel("environment steps")
+    _style_axes(axes, "success_rate", env)
+    figure.savefig(path, dpi=110)
+    return path
+
+
+PROFILE_SCORES = {"auc": "AUC of success rate", "final_success": "final success rate"}
+
+
+def draw_profiles(profiles: pd.DataFrame, path: Path, title: str) -> Path:
+    """Performance profiles: a panel per score, per method the fraction of trials above tau."""
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(11, 4.6), layout="constrained")
+    grid = figure.subplots(1, len(PROFILE_SCORES), sharey=True)
+    methods = list(dict.fromkeys(profiles["method"]))
+    colours = _method_colours(methods)
+    for axes, (score, label) in zip(grid, PROFILE_SCORES.items(), strict=True):
+        for method in methods:
+            part = profiles[(profiles["method"] == method) & (profiles["score"] == score)]
+            if part.empty:
+                continue
+            n = int(part["n"].max())
+            axes.plot(part["tau"], part["fraction"], color=colours[method], label=f"{method} ({n})")
+            axes.fill_between(
+                part["tau"], part["low"], part["high"], color=colours[method], alpha=0.2, lw=0
+            )
+        axes.set_xlabel(f"{label} threshold tau")
+        axes.set_xlim(0, 1)
+        axes.set_ylim(-0.03, 1.03)
+        axes.grid(alpha=0.3)
+    grid[0].set_ylabel("fraction of trials above tau")
+    if methods:
+        grid[-1].legend(title="method (done trials)", fontsize="small")
+    figure.suptitle(f"{title}: performance profiles, {CONFIDENCE:.0%} bootstrap bands")
+    figure.savefig(path, dpi=110)
+    return path
 
 
 def env_of(frame: pd.DataFrame) -> str | None:

@@ -25,6 +25,7 @@ TRIAL_COLUMNS = (
     "diverged_step",
     "diverged_loss",
     "error",
+    "seconds",
 )
 
 

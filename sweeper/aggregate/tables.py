@@ -4,6 +4,7 @@ probability of improvement. Statistics and resampling come from ``sweeper.stats`
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from sweeper.aggregate.frame import methods_of, scored, study_info, trial_rows
@@ -14,14 +15,27 @@ if TYPE_CHECKING:
 #: bootstrap resamples for every interval
 RESAMPLES = 2000
 CONFIDENCE = 0.95
+#: thresholds of the performance profiles (AUC and final success rate both lie in [0, 1])
+TAUS = tuple(i / 100 for i in range(101))
 #: columns of ``auc_table`` computed from the done trials' AUCs (empty when there are none)
 AUC_COLUMNS = (
     "mean",
+    "mean_low",
+    "mean_high",
     "std",
     "median",
+    "median_low",
+    "median_high",
     "iqm",
     "iqm_low",
     "iqm_high",
+    "optimality_gap",
+    "optimality_gap_low",
+    "optimality_gap_high",
+    "wall_s",
+    "wall_s_per_trial",
+    "cpu_s",
+    "gpu_s",
     "best_trial",
     "best_key",
     "best_auc",
@@ -56,14 +70,15 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
     Ledger columns (per plan key, as ``sweeper status``): planned, done (COMPLETE),
     diverged (of done), running, failed, left (not started, waiting, interrupted, or
     RUNNING without a live driver). AUC columns over the done trials: n, mean, std
-    (ddof=1), median, iqm with ``iqm_low``/``iqm_high`` (95 % stratified bootstrap,
-    ``RESAMPLES`` resamples seeded by ``seed``), and the best trial (number, key, AUC,
-    searched hyperparameters as ``name=value`` pairs).
+    (ddof=1), and ``sweeper.stats.SUMMARIES`` (mean, median, iqm, optimality_gap) each with
+    ``<name>_low``/``<name>_high`` (95 % stratified bootstrap, ``RESAMPLES`` resamples
+    seeded by ``seed``, one resample shared by the four); compute (``compute_columns``); and
+    the best trial (number, key, AUC, searched hyperparameters as ``name=value`` pairs).
     """
     import numpy as np
     import pandas as pd
 
-    from sweeper.stats import iqm, stratified_bootstrap_ci
+    from sweeper.stats import SUMMARIES, several, stratified_bootstrap
     from sweeper.storage import key_status
 
     trials = trial_rows(frame)
@@ -74,9 +89,10 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
     )
     done = trial_rows(scored(frame))
     samples = {m: g["auc"].to_numpy() for m, g in done.groupby("method")}
-    intervals = stratified_bootstrap_ci(
-        samples, iqm, confidence=CONFIDENCE, resamples=RESAMPLES, seed=seed
+    intervals = stratified_bootstrap(
+        several(*SUMMARIES.values()), samples, reps=RESAMPLES, seed=seed, confidence=CONFIDENCE
     )
+    compute = compute_columns(frame)
     table = []
     for method in methods_of(frame):
         keys = [k for k in planned if k.split("/")[0] == method]
@@ -92,13 +108,12 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
         if values.size:
             best = done[done["method"] == method].sort_values("auc", ascending=False).iloc[0]
             params = {k: best[f"params_{k}"] for k in study_info(frame).searched}
+            for index, name in enumerate(SUMMARIES):
+                point, low, high = (float(v[index]) for v in intervals[method])
+                row.update({name: point, f"{name}_low": low, f"{name}_high": high})
+            row.update(compute.get(method, {}))
             row.update(
-                mean=values.mean(),
                 std=values.std(ddof=1) if values.size > 1 else math.nan,
-                median=float(np.median(values)),
-                iqm=iqm(values),
-                iqm_low=intervals[method][0],
-                iqm_high=intervals[method][1],
                 best_trial=int(best["trial"]),
                 best_key=best["key"],
                 best_auc=float(best["auc"]),
@@ -108,26 +123,182 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
     return pd.DataFrame(table).astype({"best_trial": "Int64"})
 
 
-def improvement_table(frame: pd.DataFrame) -> pd.DataFrame:
-    """Paired probability of improvement for every ordered pair of methods.
+def improvement_table(frame: pd.DataFrame, *, seed: int = 0) -> pd.DataFrame:
+    """Paired probability of improvement, with its interval, for every ordered pair of methods.
 
     ``probability`` = P(AUC of ``method`` > AUC of ``versus``) + 0.5 P(equal), over the
     ``pairs`` (config_id, seed) where both methods have a done trial
-    (``sweeper.stats.probability_of_improvement``); NaN when they share none.
+    (``sweeper.stats.probability_of_improvement``); ``low``/``high``: its 95 % bootstrap
+    interval, the pairs resampled whole (both AUCs of a pair together); NaN when the
+    methods share no pair.
     """
     import pandas as pd
 
-    from sweeper.stats import probability_of_improvement
+    from sweeper.stats import Group, probability_of_improvement, stratified_bootstrap
 
+    columns = ["method", "versus", "probability", "low", "high", "pairs"]
     done = trial_rows(scored(frame))
+    if done.empty:
+        return pd.DataFrame(columns=columns)
     wide = done.pivot_table(index=["config_id", "seed"], columns="method", values="auc")
     methods = [m for m in methods_of(frame) if m in wide]
-    rows = []
+    groups, sizes = {}, {}
     for x in methods:
         for y in methods:
-            if x == y:
-                continue
-            pairs = wide[[x, y]].dropna()
-            p = probability_of_improvement(pairs[x], pairs[y]) if len(pairs) else math.nan
-            rows.append({"method": x, "versus": y, "probability": p, "pairs": len(pairs)})
-    return pd.DataFrame(rows, columns=["method", "versus", "probability", "pairs"])
+            if x != y:
+                pairs = wide[[x, y]].dropna()
+                sizes[x, y] = len(pairs)
+                if len(pairs):
+                    groups[f"{x}>{y}"] = Group((pairs[x].to_numpy(), pairs[y].to_numpy()))
+    intervals = stratified_bootstrap(
+        probability_of_improvement, groups, reps=RESAMPLES, seed=seed, confidence=CONFIDENCE
+    )
+    nan = (math.nan, math.nan, math.nan)
+    rows = [[x, y, *map(float, intervals.get(f"{x}>{y}", nan)), n] for (x, y), n in sizes.items()]
+    return pd.DataFrame(rows, columns=columns)
+
+
+def compute_columns(frame: pd.DataFrame) -> dict[str, dict[str, float]]:
+    """Compute per method over its done trials, from what the trials record: ``wall_s``
+    (sum of the trials' ``seconds``: wall time of every run of the trial, resumes and the
+    encoder fit included), ``wall_s_per_trial`` (their mean), and the CPU and GPU seconds
+    reserved for them (``wall_s`` x the spec's ``cpus_per_trial`` / ``gpus_per_trial``)."""
+    execution = (study_info(frame).attrs.get("spec") or {}).get("execution") or {}
+    cpus = float(execution.get("cpus_per_trial", 1.0))
+    gpus = float(execution.get("gpus_per_trial", 0.0))
+    done = trial_rows(scored(frame)).dropna(subset=["seconds"])
+    result = {}
+    for method, group in done.groupby("method"):
+        wall = float(group["seconds"].sum())
+        result[method] = {
+            "wall_s": wall,
+            "wall_s_per_trial": float(group["seconds"].mean()),
+            "cpu_s": wall * cpus,
+            "gpu_s": wall * gpus,
+        }
+    return result
+
+
+def success_matrices(frame: pd.DataFrame, metric: str = "success_rate"):
+    """Per method: the evaluation steps and a (done trials x steps) array of ``metric``;
+    trials whose curve does not cover the method's full grid are left out."""
+    import numpy as np
+
+    rows = scored(frame).dropna(subset=["step"])
+    result = {}
+    for method, part in rows.groupby("method", sort=False):
+        wide = part.pivot_table(index="trial", columns="step", values=metric, dropna=False)
+        wide = wide[np.isfinite(wide.to_numpy()).all(axis=1)]
+        if len(wide):
+            result[method] = (wide.columns.to_numpy(dtype=np.int64), wide.to_numpy())
+    return result
+
+
+def iqm_curves(frame: pd.DataFrame, *, seed: int = 0) -> pd.DataFrame:
+    """Sample-efficiency curves: per method and step, the IQM of ``success_rate`` over done
+    trials with its 95 % bootstrap band (whole curves resampled: one trial, one unit) and
+    the number of trials ``n``."""
+    import pandas as pd
+
+    from sweeper.stats import iqm, stratified_bootstrap
+
+    matrices = success_matrices(frame)
+    intervals = stratified_bootstrap(
+        iqm,
+        {m: values for m, (_, values) in matrices.items()},
+        reps=RESAMPLES,
+        seed=seed,
+        confidence=CONFIDENCE,
+    )
+    parts = [
+        pd.DataFrame(
+            {
+                "method": method,
+                "step": matrices[method][0],
+                "iqm": intervals[method].point,
+                "low": intervals[method].low,
+                "high": intervals[method].high,
+                "n": len(matrices[method][1]),
+            }
+        )
+        for method in methods_of(frame)
+        if method in matrices
+    ]
+    columns = ["method", "step", "iqm", "low", "high", "n"]
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=columns)
+
+
+def profile_table(frame: pd.DataFrame, *, seed: int = 0) -> pd.DataFrame:
+    """Performance profiles: per method, score (``auc``, ``final_success``: the success rate
+    at the last evaluation) and tau in ``TAUS``, the fraction of done trials whose score is
+    above tau, with its 95 % bootstrap band."""
+
+    matrices = success_matrices(frame)
+    done = trial_rows(scored(frame))
+    scores = {
+        "auc": {m: g["auc"].to_numpy() for m, g in done.groupby("method")},
+        "final_success": {m: values[:, -1] for m, (_, values) in matrices.items()},
+    }
+    return profile_frame(scores, methods_of(frame), seed=seed)
+
+
+def profile_frame(
+    scores: dict[str, dict[str, Any]], methods: list[str], *, seed: int = 0, strata=None
+) -> pd.DataFrame:
+    """``profile_table``'s rows from ``scores[score][method]`` (arrays of scores), resampled
+    within ``strata[score][method]`` (stratum labels) when given."""
+    import numpy as np
+    import pandas as pd
+
+    from sweeper.stats import Group, profile_statistic, stratified_bootstrap
+
+    taus = np.asarray(TAUS)
+    parts = []
+    for score, samples in scores.items():
+        groups = {
+            m: Group((samples[m],), None if strata is None else strata[score][m])
+            for m in methods
+            if m in samples and len(samples[m])
+        }
+        intervals = stratified_bootstrap(
+            profile_statistic(taus), groups, reps=RESAMPLES, seed=seed, confidence=CONFIDENCE
+        )
+        for method in groups:
+            interval = intervals[method]
+            parts.append(
+                pd.DataFrame(
+                    {
+                        "method": method,
+                        "score": score,
+                        "tau": taus,
+                        "fraction": interval.point,
+                        "low": interval.low,
+                        "high": interval.high,
+                        "n": len(samples[method]),
+                    }
+                )
+            )
+    columns = ["method", "score", "tau", "fraction", "low", "high", "n"]
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=columns)
+
+
+@dataclass(frozen=True)
+class Tables:
+    """Everything computed from one study's frame (each a tidy frame, written as CSV)."""
+
+    curves: pd.DataFrame  # method_curves: mean, std, n per method, metric and step
+    efficiency: pd.DataFrame  # iqm_curves: IQM of success with its band per method and step
+    profiles: pd.DataFrame  # profile_table
+    table: pd.DataFrame  # auc_table
+    improvement: pd.DataFrame  # improvement_table
+
+
+def study_tables(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) -> Tables:
+    """All the tables of one study, every interval seeded by ``seed``."""
+    return Tables(
+        curves=method_curves(frame),
+        efficiency=iqm_curves(frame, seed=seed),
+        profiles=profile_table(frame, seed=seed),
+        table=auc_table(frame, driver_alive=driver_alive, seed=seed),
+        improvement=improvement_table(frame, seed=seed),
+    )
