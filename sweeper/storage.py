@@ -272,6 +272,21 @@ def ledger(
     return {method: Counts(**line) for method, line in tally.items()}
 
 
+#: the name optuna-dashboard shows for the study's objective (not "Objective 0")
+OBJECTIVE_NAME = "AUC"
+
+
+def name_objective(study) -> None:
+    """Name the study's objective ``OBJECTIVE_NAME`` (Optuna marks this API experimental)."""
+    import warnings
+
+    from optuna.exceptions import ExperimentalWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ExperimentalWarning)
+        study.set_metric_names([OBJECTIVE_NAME])
+
+
 class StudyStore:
     """The driver's handle on one study: every write the sweep makes goes through here."""
 
@@ -301,6 +316,7 @@ class StudyStore:
         ``attrs["plan_hash"]`` must match the stored one: mixing two plans in one study
         would mix two budgets, so a mismatch is a StorageError.
         """
+        import optuna
         from optuna.exceptions import DuplicatedStudyError
         from optuna.study import StudyDirection
 
@@ -308,6 +324,7 @@ class StudyStore:
         if store is None:
             try:
                 study_id = storage.create_new_study([StudyDirection.MAXIMIZE], name)
+                name_objective(optuna.Study(study_name=name, storage=storage))
             except DuplicatedStudyError:  # another driver created it meanwhile
                 study_id = storage.get_study_id_from_name(name)
             store = cls(storage, study_id)

@@ -96,6 +96,7 @@ def write_synthetic_study(
             "plan_hash": "synthetic",
             "attempts": 1,
             "outcome": "completed",
+            "seconds": 60.0 * (1 + methods.index(method)) + int(config_id),
         }
         state, end = TrialState.COMPLETE, grid.size
         if key == special.diverged:

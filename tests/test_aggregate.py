@@ -22,17 +22,33 @@ from sweeper.aggregate import (
     aggregate,
     auc_table,
     improvement_table,
+    iqm_curves,
     load_study_frame,
     method_curves,
+    profile_table,
     replace_note_section,
     study_info,
 )
-from sweeper.stats import iqm
+from sweeper.stats import (
+    SUMMARIES,
+    Group,
+    iqm,
+    probability_of_improvement,
+    several,
+    stratified_bootstrap,
+)
 from sweeper.storage import current_trials, ledger
 
 METHODS = ("pixel", "linear", "vae")
-FIGURES = ("curves.png", "trials.png", "auc.png")
-CSVS = ("frame.csv", "curves.csv", "auc_table.csv", "improvement.csv")
+FIGURES = ("curves.png", "trials.png", "auc.png", "efficiency.png", "profiles.png")
+CSVS = (
+    "frame.csv",
+    "curves.csv",
+    "auc_table.csv",
+    "improvement.csv",
+    "efficiency.csv",
+    "profiles.csv",
+)
 
 
 def write_spec(path: Path, study: str, extra: str = "") -> Path:
@@ -251,3 +267,118 @@ def test_a_study_with_nothing_done_yet_aggregates(tmp_path):
     assert result.curves.empty and result.improvement.empty
     assert "**Partial study**" in result.report.read_text()
     assert all(path.is_file() for path in result.files)
+
+
+def done_trials(url: str, name: str) -> list:
+    trials = current_trials(trials_of(url, name)).values()
+    return [t for t in trials if t.state == TrialState.COMPLETE]
+
+
+def test_every_statistic_has_its_interval(synthetic):
+    url, _ = synthetic
+    table = auc_table(load_study_frame(url, "syn"), driver_alive=False, seed=5)
+    table = table.set_index("method")
+    done = done_trials(url, "syn")
+    for method in METHODS:
+        aucs = np.array([t.value for t in done if t.user_attrs["method"] == method])
+        expected = stratified_bootstrap(several(*SUMMARIES.values()), {method: aucs}, seed=5)
+        for index, name in enumerate(SUMMARIES):
+            row = table.loc[method]
+            assert row[name] == pytest.approx(SUMMARIES[name](aucs))
+            assert row[f"{name}_low"] == pytest.approx(expected[method].low[index])
+            assert row[f"{name}_high"] == pytest.approx(expected[method].high[index])
+            assert row[f"{name}_low"] <= row[name] <= row[f"{name}_high"]
+        assert table.loc[method, "optimality_gap"] == pytest.approx(np.mean(1 - aucs))
+
+
+def test_improvement_interval_resamples_the_pairs(synthetic):
+    url, _ = synthetic
+    table = improvement_table(load_study_frame(url, "syn"), seed=2)
+    auc = {
+        (t.user_attrs["method"], t.user_attrs["config_id"], t.user_attrs["seed"]): t.value
+        for t in done_trials(url, "syn")
+    }
+    for row in table.itertuples():
+        keys = sorted((c, s) for m, c, s in auc if m == row.method and (row.versus, c, s) in auc)
+        x = np.array([auc[row.method, c, s] for c, s in keys])
+        y = np.array([auc[row.versus, c, s] for c, s in keys])
+        name = f"{row.method}>{row.versus}"
+        expected = stratified_bootstrap(probability_of_improvement, {name: Group((x, y))}, seed=2)
+        assert (row.probability, row.low, row.high) == pytest.approx(tuple(expected[name]))
+        assert row.low <= row.probability <= row.high
+    # vae beats pixel on every shared pair but its diverged one: 6 of 7
+    row = table[(table["method"] == "vae") & (table["versus"] == "pixel")].iloc[0]
+    assert row.probability == pytest.approx(6 / 7) and row.low < row.probability < row.high
+
+
+def test_sample_efficiency_curves_are_iqms_over_done_trials(synthetic):
+    url, out = synthetic
+    frame = load_study_frame(url, "syn")
+    curves = iqm_curves(frame)
+    done = done_trials(url, "syn")
+    for method in METHODS:
+        success = np.array(
+            [
+                t.user_attrs["curve"]["success_rate"]
+                for t in done
+                if t.user_attrs["method"] == method
+            ]
+        )
+        part = curves[curves["method"] == method]
+        assert part["step"].tolist() == [0, 1000, 2000, 3000, 4000]
+        np.testing.assert_allclose(part["iqm"], iqm(success, axis=0))
+        assert (part["n"] == len(success)).all()
+        assert (part["low"] <= part["iqm"] + 1e-12).all() and (
+            part["iqm"] <= part["high"] + 1e-12
+        ).all()
+    assert (part["high"] - part["low"]).iloc[-1] > 0  # a real band where trials differ
+    written = pd.read_csv(out / "efficiency.csv")
+    pd.testing.assert_frame_equal(written, curves, check_dtype=False)
+
+
+def test_performance_profiles_count_trials_above_tau(synthetic):
+    url, out = synthetic
+    profiles = profile_table(load_study_frame(url, "syn"))
+    done = done_trials(url, "syn")
+    for method in METHODS:
+        mine = [t for t in done if t.user_attrs["method"] == method]
+        scores = {
+            "auc": np.array([t.value for t in mine]),
+            "final_success": np.array([t.user_attrs["curve"]["success_rate"][-1] for t in mine]),
+        }
+        for score, values in scores.items():
+            part = profiles[(profiles["method"] == method) & (profiles["score"] == score)]
+            assert len(part) == 101 and part["tau"].iloc[-1] == 1.0
+            expected = [np.mean(values > tau) for tau in part["tau"]]
+            np.testing.assert_allclose(part["fraction"], expected)
+            assert (part["low"] <= part["fraction"]).all()
+            assert (part["fraction"] <= part["high"]).all()
+    written = pd.read_csv(out / "profiles.csv")
+    pd.testing.assert_frame_equal(written, profiles, check_dtype=False)
+
+
+def test_compute_per_method_sums_the_trials_seconds(synthetic):
+    url, out = synthetic
+    table = pd.read_csv(out / "auc_table.csv").set_index("method")
+    done = done_trials(url, "syn")
+    for method in METHODS:
+        seconds = [t.user_attrs["seconds"] for t in done if t.user_attrs["method"] == method]
+        assert table.loc[method, "wall_s"] == pytest.approx(sum(seconds))
+        assert table.loc[method, "wall_s_per_trial"] == pytest.approx(np.mean(seconds))
+        assert table.loc[method, "cpu_s"] == pytest.approx(sum(seconds))  # 1 CPU per trial
+        assert table.loc[method, "gpu_s"] == 0.0
+    report = (out / "report.md").read_text()
+    hours = table.loc["pixel", "wall_s"] / 3600
+    assert f"| {hours:.2f} ({table.loc['pixel', 'wall_s_per_trial']:.0f}) |" in report
+
+
+def test_dashboard_names_the_objective_and_holds_the_new_figures(synthetic):
+    from optuna_dashboard._custom_plot_data import get_plotly_graph_objects
+
+    url, _ = synthetic
+    study = optuna.load_study(study_name="syn", storage=url)
+    assert study.metric_names == ["AUC"]
+    storage = optuna.storages.get_storage(url)
+    figures = get_plotly_graph_objects(storage.get_study_system_attrs(study._study_id))
+    assert {"sweeper-profiles", "sweeper-auc", "sweeper-curves-success_rate"} <= set(figures)
+    assert "IQM" in figures["sweeper-curves-success_rate"]

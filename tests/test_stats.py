@@ -1,14 +1,28 @@
-"""The comparison statistics on tiny hand-computed cases."""
+"""The comparison statistics and their intervals on tiny hand-computed cases, and against
+rliable's aggregates and scipy's percentile bootstrap on the same data."""
+
+import zlib
 
 import numpy as np
 import pytest
+import scipy.stats
 from scipy.stats import trim_mean
 
 from agent.metrics import normalized_auc
+from sweeper import stats
 from sweeper.stats import (
+    Group,
     bootstrap_ci,
+    bootstrap_indices,
     iqm,
+    mean,
+    median,
+    optimality_gap,
     probability_of_improvement,
+    profile_statistic,
+    score_profile,
+    several,
+    stratified_bootstrap,
     stratified_bootstrap_ci,
 )
 
@@ -102,3 +116,153 @@ def test_probability_of_improvement_hand_computed():
 def test_probability_of_improvement_needs_pairs():
     with pytest.raises(ValueError, match="paired"):
         probability_of_improvement([1, 2], [1])
+
+
+def test_mean_median_optimality_gap_hand_computed():
+    x = [0.2, 1.4, 0.6, 0.0]
+    assert mean(x) == pytest.approx(0.55)
+    assert median(x) == pytest.approx(0.4)  # (0.2 + 0.6) / 2
+    # shortfalls below 1: 0.8, 0 (1.4 overshoots, counts as 1), 0.4, 1.0 -> 2.2 / 4
+    assert optimality_gap(x) == pytest.approx(0.55)
+    assert optimality_gap(x, threshold=0.5) == pytest.approx((0.3 + 0 + 0 + 0.5) / 4)
+    np.testing.assert_allclose(optimality_gap(np.array([[1.0, 1.0], [0.0, 0.5]])), [0.0, 0.75])
+
+
+def test_score_profile_hand_computed():
+    taus = [0.0, 0.5, 1.0]
+    np.testing.assert_allclose(score_profile([0.2, 0.6], taus), [1.0, 0.5, 0.0])
+    # strictly above: a score equal to tau does not count, a zero score is above no tau
+    np.testing.assert_allclose(score_profile([0.0, 0.5, 0.5, 1.0], taus), [0.75, 0.25, 0.0])
+    batch = score_profile(np.array([[0.2, 0.6], [0.7, 0.9]]), taus)
+    np.testing.assert_allclose(batch, [[1.0, 0.5, 0.0], [1.0, 1.0, 0.0]])
+    with pytest.raises(ValueError, match="increasing"):
+        score_profile([0.1], [0.5, 0.5])
+
+
+def test_score_profile_is_rliables_score_distribution():
+    # rliable.library.run_score_deviation: np.mean(scores > tau), vectorised over the taus
+    rng = np.random.default_rng(2)
+    scores = rng.choice(np.linspace(0, 1, 11), size=(7, 40))  # many ties with the taus
+    taus = np.linspace(0, 1, 21)
+    expected = np.array([[np.mean(row > tau) for tau in taus] for row in scores])
+    np.testing.assert_allclose(score_profile(scores, taus), expected)
+    np.testing.assert_allclose(score_profile(scores.T, taus, axis=0), expected)
+
+
+def test_statistics_match_rliable():
+    """rliable's aggregates over a (runs x tasks) matrix; a method's trials as one row of
+    tasks makes its median and mean plain ones (rliable averages runs per task first)."""
+    metrics = pytest.importorskip("rliable.metrics")
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 5, 8, 33, 200):
+        x = rng.beta(2, 3, size=n).round(2)  # rounded: ties, as AUCs on a coarse grid have
+        y = np.clip(x + rng.normal(0, 0.1, n).round(2), 0, 1)
+        row = x[None, :]
+        assert iqm(x) == pytest.approx(metrics.aggregate_iqm(row))
+        assert mean(x) == pytest.approx(metrics.aggregate_mean(row))
+        assert median(x) == pytest.approx(metrics.aggregate_median(row))
+        assert optimality_gap(x) == pytest.approx(metrics.aggregate_optimality_gap(row))
+        # paired: every (SAC configuration, seed) pair is a task with one run of each
+        assert probability_of_improvement(x, y) == pytest.approx(
+            metrics.probability_of_improvement(x[None, :], y[None, :])
+        )
+
+
+def test_stratified_bootstrap_is_scipys_percentile_bootstrap():
+    """One stratum: the same draws and the same percentile interval as scipy's bootstrap,
+    for a one-sample statistic and for the paired probability of improvement."""
+    rng = np.random.default_rng(4)
+    x, y = rng.random(13), rng.random(13)
+    ours = stratified_bootstrap(iqm, {"a": x}, reps=999, seed=0)["a"]
+    theirs = scipy.stats.bootstrap(
+        (x,),
+        iqm,
+        n_resamples=999,
+        method="percentile",
+        rng=np.random.default_rng([0, zlib.crc32(b"a")]),
+    ).confidence_interval
+    assert (ours.low, ours.high) == pytest.approx((theirs.low, theirs.high), rel=1e-12)
+    assert ours.point == pytest.approx(iqm(x))
+    ours = stratified_bootstrap(probability_of_improvement, {"a>b": Group((x, y))}, seed=1)
+    theirs = scipy.stats.bootstrap(
+        (x, y),
+        probability_of_improvement,
+        paired=True,
+        n_resamples=2000,
+        method="percentile",
+        rng=np.random.default_rng([1, zlib.crc32(b"a>b")]),
+    ).confidence_interval
+    assert (ours["a>b"].low, ours["a>b"].high) == pytest.approx((theirs.low, theirs.high))
+
+
+def test_paired_bootstrap_resamples_pairs_together():
+    # x beats y on every pair: every resample of pairs keeps P = 1 (independent resampling
+    # of x and y would not, the samples overlap)
+    x, y = np.array([0.3, 0.5, 0.9, 0.4]), np.array([0.2, 0.4, 0.8, 0.3])
+    assert stratified_bootstrap(probability_of_improvement, {"x>y": Group((x, y))})["x>y"] == (
+        1.0,
+        1.0,
+        1.0,
+    )
+    # one win, one loss: resampled P is 0, 0.5 or 1 with probabilities 1/4, 1/2, 1/4
+    group = {"p": Group((np.array([1.0, 0.0]), np.array([0.0, 1.0])))}
+    assert stratified_bootstrap(probability_of_improvement, group, reps=4000)["p"] == (
+        0.5,
+        0.0,
+        1.0,
+    )
+    narrow = stratified_bootstrap(probability_of_improvement, group, reps=4000, confidence=0.4)
+    assert narrow["p"] == (0.5, 0.5, 0.5)
+
+
+def test_strata_are_resampled_within_themselves():
+    # two strata, constant inside: every resample keeps two of each, so the mean is fixed
+    values = np.array([0.0, 0.0, 1.0, 1.0])
+    strata = np.array([0, 0, 1, 1])
+    fixed = stratified_bootstrap(mean, {"m": Group((values,), strata)})["m"]
+    assert fixed == (0.5, 0.5, 0.5)
+    loose = stratified_bootstrap(mean, {"m": values})["m"]
+    assert loose.low < 0.5 < loose.high
+    indices = bootstrap_indices(np.array([2, 7, 2, 7, 7]), 300, np.random.default_rng(0))
+    assert set(np.unique(indices[:, [0, 2]])) == {0, 2}
+    assert set(np.unique(indices[:, [1, 3, 4]])) == {1, 3, 4}
+
+
+def test_several_statistics_share_one_resample():
+    x = np.random.default_rng(5).random(30)
+    together = stratified_bootstrap(several(iqm, mean, median, optimality_gap), {"a": x})["a"]
+    for column, statistic in enumerate((iqm, mean, median, optimality_gap)):
+        alone = stratified_bootstrap(statistic, {"a": x})["a"]
+        assert together.point[column] == pytest.approx(alone.point)
+        assert together.low[column] == pytest.approx(alone.low)
+        assert together.high[column] == pytest.approx(alone.high)
+
+
+def test_curves_and_profiles_are_resampled_by_whole_units(monkeypatch):
+    """A unit can be a whole curve (trials x steps): the interval is per step; chunking the
+    replicates to bound memory changes nothing."""
+    rng = np.random.default_rng(6)
+    curves = np.cumsum(rng.random((9, 5)), axis=1) / 5
+    whole = stratified_bootstrap(iqm, {"m": curves}, reps=500)["m"]
+    np.testing.assert_allclose(whole.point, iqm(curves, axis=0))
+    assert whole.low.shape == whole.high.shape == (5,)
+    assert np.all(whole.low <= whole.point) and np.all(whole.point <= whole.high)
+    monkeypatch.setattr(stats, "CHUNK_ELEMENTS", 7 * curves.size)  # 7 replicates a chunk
+    chunked = stratified_bootstrap(iqm, {"m": curves}, reps=500)["m"]
+    np.testing.assert_array_equal(chunked.low, whole.low)
+    np.testing.assert_array_equal(chunked.high, whole.high)
+    taus = np.linspace(0, 1, 11)
+    profile = stratified_bootstrap(profile_statistic(taus), {"m": curves[:, -1]})["m"]
+    np.testing.assert_allclose(profile.point, score_profile(curves[:, -1], taus))
+    assert profile.low.shape == (11,) and np.all(np.diff(profile.high) <= 0)
+
+
+def test_groups_are_checked():
+    with pytest.raises(ValueError, match="non-empty"):
+        stratified_bootstrap(mean, {"a": []})
+    with pytest.raises(ValueError, match="aligned"):
+        stratified_bootstrap(probability_of_improvement, {"a": Group((np.ones(3), np.ones(2)))})
+    with pytest.raises(ValueError, match="finite"):
+        stratified_bootstrap(mean, {"a": [1.0, np.inf]})
+    with pytest.raises(ValueError, match="strata"):
+        stratified_bootstrap(mean, {"a": Group((np.ones(3),), np.zeros(2))})

@@ -1,0 +1,219 @@
+"""``sweeper aggregate SPEC``: per-method learning curves, the AUC table, figures, a report.
+
+Reads the study once (``load_study_frame``, a few SQL queries over Optuna's tables) into a
+tidy frame with one row per (trial, evaluation step), then writes under ``--out``
+(default ``runs/<study>/aggregate``):
+
+- ``frame.csv``: the tidy frame; ``curves.csv``: per-method mean/std/n at every step of
+  every metric; ``auc_table.csv``: the per-method AUC table; ``improvement.csv``: paired
+  probability of improvement between methods;
+- ``curves.png`` (a panel per metric: mean ± std per method), ``trials.png`` (a panel per
+  metric and method, a line per trial coloured by its AUC), ``auc.png`` (trial AUCs, IQM
+  and its 95 % CI);
+- ``report.md``, which embeds the figures;
+
+and saves the curves, the AUC figure and the table (a section of the study note) into the
+study, where optuna-dashboard shows them (``--no-dashboard`` skips this, the only write).
+
+Which trials count: a plan key may have several Optuna trials (an interrupted or failed
+attempt, then its re-run); its *current* trial (the highest number, as in
+``sweeper.storage.current_trials``) counts, the others stay in ``frame.csv`` with
+``counted = False``. AUC statistics and mean curves use the counted COMPLETE trials
+(diverged ones included: their curve is filled with zeros after the divergence).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+# Each module imports pandas, matplotlib, optuna and plotly where used, so that importing
+# the package (``sweeper --help``) stays light.
+from sweeper.aggregate.dashboard import (
+    NOTE_BEGIN,
+    NOTE_END,
+    replace_note_section,
+    save_to_dashboard,
+)
+from sweeper.aggregate.figures import draw_figures, metric_label
+from sweeper.aggregate.frame import (
+    TRIAL_COLUMNS,
+    StudyInfo,
+    load_study_frame,
+    methods_of,
+    scored,
+    study_info,
+    trial_rows,
+)
+from sweeper.aggregate.report import report_markdown, table_markdown
+from sweeper.aggregate.tables import (
+    AUC_COLUMNS,
+    CONFIDENCE,
+    RESAMPLES,
+    Tables,
+    auc_table,
+    improvement_table,
+    iqm_curves,
+    method_curves,
+    profile_table,
+    study_tables,
+)
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+__all__ = [
+    "AUC_COLUMNS",
+    "CONFIDENCE",
+    "NOTE_BEGIN",
+    "NOTE_END",
+    "RESAMPLES",
+    "TRIAL_COLUMNS",
+    "AggregateResult",
+    "StudyInfo",
+    "Tables",
+    "aggregate",
+    "auc_table",
+    "improvement_table",
+    "iqm_curves",
+    "load_study_frame",
+    "method_curves",
+    "methods_of",
+    "metric_label",
+    "profile_table",
+    "replace_note_section",
+    "scored",
+    "study_info",
+    "study_tables",
+    "table_markdown",
+    "trial_rows",
+]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``sweeper aggregate``."""
+    from sweeper.cli import add_spec_arguments
+
+    add_spec_arguments(parser)
+    parser.add_argument(
+        "--out", metavar="DIR", help="output folder (default: runs/<study>/aggregate)"
+    )
+    parser.add_argument(
+        "--no-dashboard",
+        action="store_true",
+        help="do not save the comparison figures and note into the study for optuna-dashboard",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """``sweeper aggregate``: exit 0, or 2 with a one-line message on a bad spec or study."""
+    from sweeper.cli import spec_from_args
+
+    try:
+        spec = spec_from_args(args)
+        out = Path(args.out) if args.out else spec.run_dir / "aggregate"
+        result = aggregate(
+            spec.storage_url, spec.study, out, seed=spec.seed, dashboard=not args.no_dashboard
+        )
+    except ValueError as e:  # SpecError, StorageError, an unknown or empty study
+        print(f"sweeper aggregate: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {len(result.files)} files to {out}; report: {result.report}")
+    return 0
+
+
+# ---- the whole command ---------------------------------------------------------------
+
+
+#: the CSV files of one study's aggregation, and the tables they hold
+CSV_FILES = {
+    "curves.csv": "curves",
+    "efficiency.csv": "efficiency",
+    "profiles.csv": "profiles",
+    "auc_table.csv": "table",
+    "improvement.csv": "improvement",
+}
+
+
+@dataclass(frozen=True)
+class AggregateResult:
+    """What ``aggregate`` computed and wrote."""
+
+    frame: pd.DataFrame
+    tables: Tables
+    files: tuple[Path, ...]
+    report: Path
+
+    @property
+    def curves(self) -> pd.DataFrame:
+        return self.tables.curves
+
+    @property
+    def table(self) -> pd.DataFrame:
+        return self.tables.table
+
+    @property
+    def improvement(self) -> pd.DataFrame:
+        return self.tables.improvement
+
+
+def aggregate(
+    storage_url: str,
+    study_name: str,
+    out: Path,
+    *,
+    seed: int = 0,
+    dashboard: bool = True,
+    progress: Callable[[str], None] | None = None,
+) -> AggregateResult:
+    """Read the study, compute curves and statistics, write CSV, PNG and the report to
+    ``out``; with ``dashboard``, also save the comparison into the study."""
+    import optuna
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from sweeper.storage import StudyStore, open_storage
+
+    say = progress or (lambda message: print(message, file=sys.stderr, flush=True))
+    start = time.perf_counter()
+    frame = load_study_frame(storage_url, study_name)
+    say(
+        f"read {frame['trial'].nunique()} trials, {len(frame)} rows of study {study_name!r} "
+        f"in {time.perf_counter() - start:.1f} s"
+    )
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    storage = open_storage(storage_url, create=False)
+    try:
+        store = StudyStore.find(storage, study_name)
+        alive = store is not None and store.driver_alive()
+        tables = study_tables(frame, driver_alive=alive, seed=seed)
+        say(f"computed the tables in {time.perf_counter() - start:.1f} s; writing to {out}")
+        files = write_tables(frame, tables, out)
+        figures = draw_figures(frame, tables, out)
+        report = out / "report.md"
+        report.write_text(report_markdown(frame, tables, alive), encoding="utf-8")
+        if dashboard and store is not None:
+            try:
+                save_to_dashboard(storage, frame, tables)
+                say("saved the comparison figures and note into the study (optuna-dashboard)")
+            except (SQLAlchemyError, optuna.exceptions.StorageInternalError) as e:
+                # e.g. a read-only database: the files are written, say so and go on
+                say(f"warning: could not save the comparison into the study: {e}")
+    finally:
+        storage.remove_session()
+        storage.engine.dispose()
+    say(f"aggregated in {time.perf_counter() - start:.1f} s")
+    return AggregateResult(frame, tables, (*files, *figures, report), report)
+
+
+def write_tables(frame: pd.DataFrame, tables: Tables, out: Path) -> list[Path]:
+    """``frame.csv`` and the ``CSV_FILES`` under ``out``; returns their paths."""
+    out.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(out / "frame.csv", index=False)
+    for name, field in CSV_FILES.items():
+        getattr(tables, field).to_csv(out / name, index=False)
+    return [out / "frame.csv", *(out / name for name in CSV_FILES)]

@@ -1,0 +1,179 @@
+"""What optuna-dashboard shows of the comparison: plotly figures and a section of the study
+note, saved into the study."""
+
+from __future__ import annotations
+
+from sweeper.aggregate.figures import PALETTE, PROFILE_SCORES, env_of, metric_label
+from sweeper.aggregate.frame import methods_of, scored, study_info, trial_rows
+from sweeper.aggregate.report import DEFINITIONS, table_markdown
+from sweeper.aggregate.tables import CONFIDENCE, Tables
+
+#: first lines of the study note's section written by ``sweeper aggregate``
+NOTE_BEGIN = "<!-- sweeper aggregate: begin (rewritten by every run) -->"
+NOTE_END = "<!-- sweeper aggregate: end -->"
+
+
+def _band_traces(go, method: str, colour: str, steps, line, low, high, n: int, what: str):
+    """A filled band from ``low`` to ``high`` and the ``line`` over it, as plotly traces."""
+    band = colour.replace(", 1)", ", 0.2)")
+    return [
+        go.Scatter(
+            x=steps + steps[::-1],
+            y=list(high) + list(low)[::-1],
+            fill="toself",
+            fillcolor=band,
+            line={"width": 0},
+            hoverinfo="skip",
+            legendgroup=method,
+            showlegend=False,
+            name=f"{method} {what}",
+        ),
+        go.Scatter(x=steps, y=list(line), name=f"{method} (n = {n})", line={"color": colour}),
+    ]
+
+
+def _curve_figure(go, frame, tables: Tables, metric: str):
+    """Per method: success rate as IQM with its bootstrap band (the default curve), every
+    other metric as mean ± std."""
+    colours = [f"rgba{(*rgb, 1)}" for rgb in PALETTE]
+    figure = go.Figure()
+    iqm = metric == "success_rate"
+    for index, method in enumerate(methods_of(frame)):
+        colour = colours[index % len(colours)]
+        if iqm:
+            part = tables.efficiency[tables.efficiency["method"] == method]
+            if part.empty:
+                continue
+            line, low, high = part["iqm"], part["low"], part["high"]
+        else:
+            curves = tables.curves
+            part = curves[(curves["method"] == method) & (curves["metric"] == metric)]
+            if part.empty:
+                continue
+            std = part["std"].fillna(0)
+            line, low, high = part["mean"], part["mean"] - std, part["mean"] + std
+        steps = part["step"].astype(int).tolist()  # lists: plain JSON, no binary arrays
+        what = "band" if iqm else "± std"
+        n = int(part["n"].max())
+        for trace in _band_traces(go, method, colour, steps, line, low, high, n, what):
+            figure.add_trace(trace)
+    title = (
+        f"success rate: IQM with {CONFIDENCE:.0%} bootstrap bands over done trials per method"
+        if iqm
+        else f"{metric.replace('_', ' ')}: mean ± std over done trials per method"
+    )
+    figure.update_layout(
+        title=title,
+        xaxis_title="environment steps",
+        yaxis_title=metric_label(metric, env_of(frame)),
+    )
+    return figure
+
+
+def _profile_figure(go, frame, tables: Tables):
+    """Performance profiles, a panel per score, with bootstrap bands."""
+    from plotly.subplots import make_subplots
+
+    colours = [f"rgba{(*rgb, 1)}" for rgb in PALETTE]
+    titles = PROFILE_SCORES.values()
+    figure = make_subplots(
+        rows=1, cols=len(PROFILE_SCORES), shared_yaxes=True, subplot_titles=[*titles]
+    )
+    profiles = tables.profiles
+    for column, score in enumerate(PROFILE_SCORES, start=1):
+        for index, method in enumerate(methods_of(frame)):
+            part = profiles[(profiles["method"] == method) & (profiles["score"] == score)]
+            if part.empty:
+                continue
+            colour = colours[index % len(colours)]
+            n = int(part["n"].max())
+            taus = part["tau"].tolist()
+            traces = _band_traces(
+                go, method, colour, taus, part["fraction"], part["low"], part["high"], n, "band"
+            )
+            for trace in traces:
+                shown = trace.showlegend is not False and column == 1
+                trace.update(legendgroup=method, showlegend=shown)
+                figure.add_trace(trace, row=1, col=column)
+        figure.update_xaxes(title_text="threshold tau", range=[0, 1], row=1, col=column)
+    figure.update_yaxes(title_text="fraction of trials above tau", range=[0, 1.02], row=1, col=1)
+    figure.update_layout(title=f"Performance profiles with {CONFIDENCE:.0%} bootstrap bands")
+    return figure
+
+
+def save_to_dashboard(storage, frame, tables: Tables) -> None:
+    """Plotly figures (curves per metric, sample efficiency, profiles, AUC), the objective's
+    name and a note section into the study."""
+    import optuna
+    import plotly.graph_objects as go
+    from optuna_dashboard import get_note, save_note, save_plotly_graph_object
+
+    from sweeper.storage import OBJECTIVE_NAME, name_objective
+
+    study = optuna.load_study(study_name=study_info(frame).name, storage=storage)
+    if study.metric_names != [OBJECTIVE_NAME]:  # studies launched before it was named
+        name_objective(study)
+    for metric in study_info(frame).metrics:
+        figure = _curve_figure(go, frame, tables, metric)
+        save_plotly_graph_object(study, figure, graph_object_id=f"sweeper-curves-{metric}")
+    figure = _profile_figure(go, frame, tables)
+    save_plotly_graph_object(study, figure, graph_object_id="sweeper-profiles")
+    table, improvement = tables.table, tables.improvement
+    done = table[table["n"] > 0]
+    aucs = trial_rows(scored(frame))
+    auc_figure = go.Figure(
+        go.Box(
+            x=aucs["method"].tolist(),
+            y=aucs["auc"].tolist(),
+            text=aucs["key"].tolist(),
+            boxpoints="all",
+            jitter=0.4,
+            pointpos=0,
+            name="trial AUCs",
+            marker={"color": "rgba(127, 127, 127, 0.7)"},
+            line={"color": "rgba(127, 127, 127, 0.7)"},
+        )
+    )
+    auc_figure.add_trace(
+        go.Scatter(
+            x=done["method"].tolist(),
+            y=done["iqm"].tolist(),
+            mode="markers",
+            marker={"size": 12, "symbol": "diamond", "color": "rgba(214, 39, 40, 1)"},
+            error_y={
+                "type": "data",
+                "symmetric": False,
+                "array": (done["iqm_high"] - done["iqm"]).tolist(),
+                "arrayminus": (done["iqm"] - done["iqm_low"]).tolist(),
+            },
+            name=f"IQM with {CONFIDENCE:.0%} bootstrap CI",
+        )
+    )
+    auc_figure.update_layout(
+        title=f"AUC per method: IQM with {CONFIDENCE:.0%} stratified bootstrap CI",
+        xaxis_title="method",
+        yaxis_title="AUC of success rate (normalised, 0..1)",
+    )
+    save_plotly_graph_object(study, auc_figure, graph_object_id="sweeper-auc")
+    section = "\n".join(
+        [
+            NOTE_BEGIN,
+            "## Method comparison (sweeper aggregate)",
+            "",
+            table_markdown(table, improvement),
+            "",
+            DEFINITIONS,
+            NOTE_END,
+        ]
+    )
+    save_note(study, replace_note_section(get_note(study), section))
+
+
+#: matplotlib's default colour cycle (tab10) as RGB, so dashboard and PNG colours agree
+def replace_note_section(note: str, section: str) -> str:
+    """``note`` with its sweeper section (between the markers) replaced by ``section``,
+    or ``section`` appended; what the user wrote around it is kept."""
+    begin, end = note.find(NOTE_BEGIN), note.find(NOTE_END)
+    if begin >= 0 and end > begin:
+        return note[:begin] + section + note[end + len(NOTE_END) :]
+    return f"{note.rstrip()}\n\n{section}" if note.strip() else section

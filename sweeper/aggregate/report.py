@@ -1,0 +1,153 @@
+"""The Markdown report and the study note's section."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import TYPE_CHECKING, Any
+
+from sweeper.aggregate.frame import study_info, trial_rows
+from sweeper.aggregate.tables import CONFIDENCE, RESAMPLES, Tables
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+
+def _fmt(value: Any, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "–"
+    return f"{value:.{digits}f}" if isinstance(value, float) else str(value)
+
+
+def _interval(row: dict[str, Any], name: str, digits: int = 3) -> str:
+    """``point [low, high]`` of column ``name`` and its ``_low``/``_high`` columns."""
+    low, high = row[f"{name}_low"], row[f"{name}_high"]
+    return f"{_fmt(row[name], digits)} [{_fmt(low, digits)}, {_fmt(high, digits)}]"
+
+
+def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame) -> str:
+    """The AUC table (ledger, every statistic with its interval, compute, best trial) and
+    the probability-of-improvement matrix with intervals, as Markdown."""
+    lines = [
+        "| method | planned | done | diverged | running | failed | left "
+        f"| IQM AUC [{CONFIDENCE:.0%} CI] | mean [CI] | median [CI] | optimality gap [CI] | std "
+        "| wall h (s per trial) | CPU h | GPU h | best trial |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    for row in table.to_dict("records"):
+        if row["n"]:
+            stats = " | ".join(
+                _interval(row, name) for name in ("iqm", "mean", "median", "optimality_gap")
+            )
+            compute = (
+                f"{_fmt(row['wall_s'] / 3600, 2)} ({_fmt(row['wall_s_per_trial'], 0)}) "
+                f"| {_fmt(row['cpu_s'] / 3600, 2)} | {_fmt(row['gpu_s'] / 3600, 2)}"
+            )
+            best = (
+                f"#{row['best_trial']} {row['best_key']}: {_fmt(row['best_auc'])} "
+                f"({row['best_params']})"
+            )
+        else:
+            stats, compute, best = " | ".join("–" * 4), "– | – | –", "–"
+        lines.append(
+            f"| {row['method']} | {row['planned']} | {row['done']} | {row['diverged']} "
+            f"| {row['running']} | {row['failed']} | {row['left']} | {stats} "
+            f"| {_fmt(row['std'])} | {compute} | {best} |"
+        )
+    methods = table["method"].tolist()
+    if len(methods) > 1:
+        lookup = {(r.method, r.versus): r for r in improvement.itertuples()}
+        lines += [
+            "",
+            "Probability of improvement P(row > column), paired by SAC configuration and seed, "
+            f"with its {CONFIDENCE:.0%} CI (number of pairs in brackets):",
+            "",
+            "| | " + " | ".join(methods) + " |",
+            "|---|" + "---:|" * len(methods),
+        ]
+        for x in methods:
+            cells = []
+            for y in methods:
+                r = lookup.get((x, y))
+                if r is None or not r.pairs:
+                    cells.append("–")
+                else:
+                    cells.append(
+                        f"{_fmt(r.probability, 2)} [{_fmt(r.low, 2)}, {_fmt(r.high, 2)}] "
+                        f"({r.pairs})"
+                    )
+            lines.append(f"| {x} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+DEFINITIONS = f"""\
+How to read this: a trial's AUC is the area under its success-rate curve over the evaluation
+grid divided by the grid's length (0: never succeeds, 1: always). Statistics use each plan
+key's current trial when it is done (COMPLETE; diverged trials count, with zero success after
+the divergence). IQM: mean of the middle 50 % of a method's AUCs (robust to outlier trials,
+more precise than the median). Optimality gap: mean shortfall of the AUCs below 1 (lower is
+better). Every interval is a {CONFIDENCE:.0%} percentile bootstrap, {RESAMPLES} resamples of the
+method's own trials (stratified by method), seeded. Probability of improvement of A over B:
+over the (SAC configuration, seed) pairs where both are done, the fraction where A's AUC is
+higher, ties counting one half; its interval resamples the pairs whole. Compute: wall time of
+the done trials (every run of a trial, the encoder fit included), and the CPU and GPU time
+reserved for them (wall x the spec's cpus_per_trial, gpus_per_trial)."""
+
+
+def report_markdown(frame: pd.DataFrame, tables: Tables, driver_alive: bool) -> str:
+    """The study's report.md: ledger, statistics, figures, data files."""
+    study = study_info(frame).attrs
+    trials = trial_rows(frame)
+    table = tables.table
+    lines = [
+        f"# Study `{study_info(frame).name}`: method comparison",
+        "",
+        f"Env `{study.get('env', 'unknown')}`, code revision `{study.get('revision', 'unknown')}`, "
+        f"{trials['trial'].nunique()} Optuna trials for {trials['key'].nunique()} plan keys; "
+        f"written {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.",
+        "",
+    ]
+    if (table["running"] + table["left"]).sum():
+        status = "a driver is running it" if driver_alive else "no driver is running it"
+        lines += [
+            f"**Partial study** ({status}): {int(table['running'].sum())} trials running and "
+            f"{int(table['left'].sum())} left; the statistics cover done trials only.",
+            "",
+        ]
+    lines += [
+        "## AUC per method",
+        "",
+        table_markdown(table, tables.improvement),
+        "",
+        DEFINITIONS,
+        "",
+        "![AUC per method](auc.png)",
+        "",
+        "## Sample efficiency",
+        "",
+        f"IQM of the success rate at each evaluation step over the done trials, with "
+        f"{CONFIDENCE:.0%} bootstrap bands (whole curves resampled):",
+        "",
+        "![IQM success rate per method](efficiency.png)",
+        "",
+        "## Performance profiles",
+        "",
+        "Fraction of a method's done trials whose AUC (left) or final success rate (right) is "
+        f"above tau, with {CONFIDENCE:.0%} bootstrap bands; a curve above another everywhere "
+        "dominates it:",
+        "",
+        "![performance profiles](profiles.png)",
+        "",
+        "## Learning curves of every metric",
+        "",
+        "![mean and std of every metric per method](curves.png)",
+        "",
+        "Every trial (grey dashed: unfinished; red dotted: failed):",
+        "",
+        "![every trial's curves coloured by AUC](trials.png)",
+        "",
+        "Data: `frame.csv` (one row per trial and evaluation step), `curves.csv` (mean, std), "
+        "`efficiency.csv` (IQM and band), `profiles.csv`, `auc_table.csv`, `improvement.csv`.",
+        "",
+    ]
+    return "\n".join(lines)
