@@ -13,7 +13,10 @@ Goal boxes (``state_bounds()``), with g0 the gripper position after Fetch's rese
 - fetch_push: object xyz with xy in g0 +- 0.15 m and z = the object's resting height
   (FetchPush-v4's box).
 Goals are drawn uniformly from the box, as Fetch draws them (a goal may be reached at
-the start, as in Fetch); the block starts where FetchPush-v4 puts it.
+the start, as in Fetch); the block starts where FetchPush-v4 puts it. A uniformly random
+agent reaches the goal at some step of an episode in 25.5% of fetch_reach episodes (22.5%
+with v4's full z range) and 8.5% of fetch_push episodes (0% when goals reached at the
+start were drawn again, as this env did before); 200 episodes each.
 Success: distance < 0.05 m (Fetch's threshold).
 
 Camera: Fetch's own viewer camera (gymnasium-robotics ``DEFAULT_CAMERA_CONFIG``: distance
