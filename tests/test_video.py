@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import agent
 from agent import video
+from agent.config import SACConfig, TrialConfig
 
 
 def blobs(n: int, size: int) -> tuple[list[np.ndarray], np.ndarray]:
@@ -65,3 +67,56 @@ def test_encode_video_refuses_unknown_formats_and_no_frames() -> None:
         video.encode_video([np.zeros((16, 16, 3), np.uint8)], "avi")
     with pytest.raises(ValueError, match="at least one frame"):
         video.encode_video([], "gif")
+
+
+# ---- filming a trial's evaluation episode (agent.train) -----------------------------------
+TINY_SAC = SACConfig(hidden_sizes=(16, 16), batch_size=16, updates_per_step=1, feature_dim=8,
+                     num_filters=8)  # fmt: skip
+
+
+def tiny(**kwargs) -> TrialConfig:
+    base = dict(
+        env="point_reach",
+        image_size=32,
+        sac=TINY_SAC,
+        total_steps=200,
+        seed_steps=50,
+        eval_every=100,
+        eval_episodes=2,
+        device="cpu",
+    )
+    return TrialConfig(**{**base, **kwargs})
+
+
+@pytest.mark.parametrize("method", ["pixel", "state"])
+def test_train_films_the_first_evaluation_episode_at_video_steps(method: str) -> None:
+    files: list[tuple[str, bytes]] = []
+    config = tiny(method=method, video_steps=[200, 0])
+    result = agent.train(config, record=lambda name, data: files.append((name, data)))
+    fmt = video.default_format()
+    assert [name for name, _ in files] == [f"episode-step0.{fmt}", f"episode-step200.{fmt}"]
+    frames = video.decode_video(files[-1][1], fmt)
+    assert frames.shape == (51, 160, 272, 3)  # reset + 50 steps; 2 x 128 + gap, 128 + caption
+    assert 0 < result.video_seconds < result.seconds
+    # filming changes nothing the trial computes, and no record callback means no filming
+    plain = agent.train(config)
+    assert plain.metrics == result.metrics and plain.video_seconds == 0.0
+
+
+def test_video_steps_must_be_on_the_evaluation_grid() -> None:
+    assert tiny(video_steps=[200, 100, 200]).video_steps == (100, 200)
+    for bad in ([150], [300], [-100], ["200"]):
+        with pytest.raises(ValueError, match="video_steps must be env steps on the evaluation"):
+            tiny(video_steps=bad)
+
+
+def test_goal_image_is_rendered_in_state_mode_as_in_image_mode() -> None:
+    from agent.envs import make_env
+
+    image_env = make_env("point_reach", image_size=32)
+    state_env = make_env("point_reach", image_size=32, obs_mode="state")
+    obs, _ = image_env.reset(seed=3)
+    state_env.reset(seed=3)
+    assert np.array_equal(state_env.goal_image(), obs["goal_image"])
+    assert np.array_equal(image_env.goal_image(), obs["goal_image"])
+    assert np.array_equal(state_env.render_image(), obs["image"])
