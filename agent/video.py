@@ -39,7 +39,8 @@ def default_format() -> str:
 
 
 @functools.cache
-def _font() -> Any:
+def caption_font() -> Any:
+    """Pillow's default font at caption size (no font file needed)."""
     from PIL import ImageFont
 
     return ImageFont.load_default(size=11)
@@ -70,7 +71,7 @@ def episode_frames(
         frame[:panel, :panel] = image.repeat(scale, 0).repeat(scale, 1)
         canvas = Image.fromarray(frame)
         ImageDraw.Draw(canvas).multiline_text(
-            (3, panel + 2), caption, fill=(255, 255, 255), font=_font(), spacing=2
+            (3, panel + 2), caption, fill=(255, 255, 255), font=caption_font(), spacing=2
         )
         frames.append(np.asarray(canvas))
     return frames

@@ -97,8 +97,15 @@ def run(args: argparse.Namespace) -> int:
     try:
         spec = spec_from_args(args)
         out = Path(args.out) if args.out else spec.run_dir / "aggregate"
+        from sweeper.artifacts import artifact_location
+
         result = aggregate(
-            spec.storage_url, spec.study, out, seed=spec.seed, dashboard=not args.no_dashboard
+            spec.storage_url,
+            spec.study,
+            out,
+            seed=spec.seed,
+            dashboard=not args.no_dashboard,
+            artifacts=artifact_location(spec),
         )
     except ValueError as e:  # SpecError, StorageError, an unknown or empty study
         print(f"sweeper aggregate: {e}", file=sys.stderr)
@@ -439,9 +446,11 @@ def aggregate(
     seed: int = 0,
     dashboard: bool = True,
     progress: Callable[[str], None] | None = None,
+    artifacts: str | None = None,
 ) -> AggregateResult:
     """Read the study, compute curves and statistics, write CSV, PNG and the report to
-    ``out``; with ``dashboard``, also save the comparison into the study."""
+    ``out``; with ``dashboard``, also save the comparison into the study; with the study's
+    ``artifacts`` location, add pictures to the report (``sweeper.frames``)."""
     import optuna
     from sqlalchemy.exc import SQLAlchemyError
 
@@ -469,7 +478,12 @@ def aggregate(
         say(f"computed the AUC table and curves; drawing figures in {out}")
         figures = _draw_figures(frame, curves, table, out)
         report = out / "report.md"
-        report.write_text(_report(frame, table, improvement, alive), encoding="utf-8")
+        text = _report(frame, table, improvement, alive)
+        if artifacts is not None:  # final frames per method, the env's view (sweeper.frames)
+            from sweeper.frames import report_pictures
+
+            text += report_pictures(frame, storage, artifacts, out)
+        report.write_text(text, encoding="utf-8")
         if dashboard and store is not None:
             try:
                 _save_to_dashboard(storage, store.study_id, frame, curves, table, improvement)

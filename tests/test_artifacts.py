@@ -199,3 +199,20 @@ def test_a_worker_killed_after_recording_does_not_store_its_video_twice(tmp_path
     assert trial.user_attrs["videos"] == {"episode-step300.gif": meta.artifact_id}
     assert [p.name for p in (tmp_path / "artifacts").iterdir()] == [meta.artifact_id]
     assert load_spec(tmp_path / "spec.yaml").video_steps == (300,)
+
+
+# ---- the report's pictures ------------------------------------------------------------------
+def test_report_shows_final_frames_of_each_method_and_the_env_view(ci_study, ci_aggregate):
+    from PIL import Image
+
+    report = (ci_aggregate / "report.md").read_text()
+    assert "## What the agents do" in report and "](final_frames.png)" in report
+    for method in ("pixel", "linear"):  # one trial each: best and median are the same
+        line = [x for x in report.splitlines() if x.startswith(f"| {method} |")][-1]
+        assert "best: trial" in line and "median: trial" in line and "step 300" in line
+    strip = np.asarray(Image.open(ci_aggregate / "final_frames.png").convert("RGB"))
+    # two rows (methods) of two labelled 160x272 frames (best, median), 6 pixels apart
+    assert strip.shape == (2 * (16 + 160) + 6, 2 * 272 + 6, 3)
+    assert "## What the encoders see" in report and "](env_views.png)" in report
+    views = np.asarray(Image.open(ci_aggregate / "env_views.png").convert("RGB"))
+    assert views.shape == (16 + 96, 4 * (2 * 96 + 6) + 3 * 6, 3)  # 4 resets: view | goal
