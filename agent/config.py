@@ -104,6 +104,8 @@ class TrialConfig:
     # whose checkpoints these are (the sweeper's study id): another owner's are refused
     checkpoint_owner: str | None = None
     env_kwargs: dict[str, Any] = field(default_factory=dict)
+    # evaluation steps whose first episode is filmed and handed to ``train``'s ``record``
+    video_steps: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         _check(isinstance(self.sac, SACConfig), "sac", "a SACConfig", self.sac)
@@ -132,11 +134,33 @@ class TrialConfig:
             "'auto', 'cpu', 'cuda' or 'cuda:N'",
             self.device,
         )
+        steps = self.video_steps
+        _check(
+            isinstance(steps, tuple | list)
+            and all(
+                _is_int(s)
+                and 0 <= s <= self.total_steps
+                and (s % self.eval_every == 0 or s == self.total_steps)
+                for s in steps
+            ),
+            "video_steps",
+            f"env steps on the evaluation grid (multiples of eval_every={self.eval_every} "
+            f"up to total_steps={self.total_steps}, or total_steps)",
+            steps,
+        )
+        object.__setattr__(self, "video_steps", tuple(sorted(set(steps))))
 
 
 #: TrialConfig fields that change how a trial runs but not its curve (a checkpoint written
 #: under one value resumes under another)
-RUNTIME_FIELDS = ("device", "threads", "checkpoint_dir", "checkpoint_every", "checkpoint_owner")
+RUNTIME_FIELDS = (
+    "device",
+    "threads",
+    "checkpoint_dir",
+    "checkpoint_every",
+    "checkpoint_owner",
+    "video_steps",
+)
 
 Outcome = Literal["completed", "diverged"]
 
@@ -149,7 +173,9 @@ class TrialResult:
     remaining grid points hold ``success_rate = 0`` and NaN for the other metrics.
     ``seconds`` is the wall time summed over every run of the trial (resumes included);
     ``resumed_from`` the env step of the checkpoint this run started from, if any;
-    ``reward_scale`` the factor the reward was multiplied by (``"auto"`` resolved).
+    ``reward_scale`` the factor the reward was multiplied by (``"auto"`` resolved);
+    ``video_seconds`` the wall time spent filming and encoding episode videos (included in
+    ``seconds``; the runs that recorded them).
     """
 
     steps: tuple[int, ...]
@@ -161,3 +187,4 @@ class TrialResult:
     seconds: float = 0.0
     resumed_from: int | None = None
     reward_scale: float = 1.0
+    video_seconds: float = 0.0

@@ -13,6 +13,13 @@ uses the env's true reward on state observations, the image control
 multiplied by the trial's reward scale (``TrialConfig.reward_scale``; "auto" is measured
 on a random policy's episodes before training).
 
+Videos: at each of ``config.video_steps`` the first evaluation episode is filmed (each
+frame the observation beside the goal image, captioned with the env step, the reward the
+agent is trained on, ``scale * latent reward``, or the scaled true reward for the
+true-reward methods, and the true distance; ``agent.video``) and handed to
+``record(filename, bytes)``, when given. Filming reads the env and never its random
+generators, so the curve is the same with or without it.
+
 Checkpoints are written only at episode ends: the next thing the trial does is reset
 the env, so no mid-episode simulator state is needed, only the env's random generator.
 A checkpoint holds the networks, optimisers, replay, counters, the curve so far, and the
@@ -53,6 +60,8 @@ from agent.sac import SAC
 from encoders.torch_base import resolve_device
 
 Report = Callable[[int, dict[str, float]], None]
+#: ``record(filename, data)``: a file the trial made (an episode video)
+Record = Callable[[str, bytes], None]
 CHECKPOINT_NAME = "checkpoint.pt"
 CHECKPOINT_FORMAT = 1
 DEFAULT_NUM_IMAGES = 1000
@@ -146,18 +155,66 @@ def measure_reward_scale(config: TrialConfig, encoder: Any) -> float:
     return 1.0 / mean
 
 
-def evaluate(agent: SAC, env: Any, seeds: list[int], keys: tuple[str, str]) -> dict[str, float]:
-    """Deterministic-policy episodes, one per seed; metrics from each final step's info."""
+class Episode:
+    """The camera frames of one episode, its goal image and each frame's true distance
+    to the goal; ``seconds`` is the time spent collecting them."""
+
+    def __init__(self) -> None:
+        self.images: list[np.ndarray] = []
+        self.distances: list[float] = []
+        self.goal: np.ndarray | None = None
+        self.seconds = 0.0
+
+    def add(self, env: Any, obs: dict[str, np.ndarray]) -> None:
+        start = time.perf_counter()
+        if self.goal is None:
+            self.goal = obs["goal_image"] if "goal_image" in obs else env.goal_image()
+        self.images.append(obs["image"] if "image" in obs else env.render_image())
+        self.distances.append(-env.true_reward(env.controllable_state(), env.goal_state()))
+        self.seconds += time.perf_counter() - start
+
+
+def evaluate(
+    agent: SAC, env: Any, seeds: list[int], keys: tuple[str, str], film: Episode | None = None
+) -> dict[str, float]:
+    """Deterministic-policy episodes, one per seed; metrics from each final step's info.
+    ``film`` collects the first episode's frames."""
     finals = []
     for seed in seeds:
         obs, info = env.reset(seed=seed)
+        if film is not None:
+            film.add(env, obs)
         done = False
         while not done:
             action = agent.act(obs[keys[0]], obs[keys[1]], sample=False)
             obs, _, terminated, truncated, info = env.step(action)
+            if film is not None:
+                film.add(env, obs)
             done = terminated or truncated
         finals.append(info)
+        film = None
     return summarize_episodes(finals, env.metric_names)
+
+
+def episode_video(
+    episode: Episode, step: int, method: str, encoder: Any, scale: float, fmt: str
+) -> bytes:
+    """The video of a filmed episode; each frame's reward is the one the agent is trained
+    on: ``scale`` times the latent reward, or the true reward without an encoder."""
+    from agent import video
+
+    distances = np.asarray(episode.distances)
+    if encoder is None:
+        rewards = -scale * distances
+    else:
+        goal = encoder.encode(episode.goal[None])
+        rewards = scale * encoders.latent_reward(encoder.encode(np.stack(episode.images)), goal)
+    last = len(episode.images) - 1
+    captions = [
+        f"step {step}  t {t}/{last}  {method}\nreward {r:+.3f}  distance {d:.3f}"
+        for t, (r, d) in enumerate(zip(rewards, distances, strict=True))
+    ]
+    return video.encode_video(video.episode_frames(episode.images, episode.goal, captions), fmt)
 
 
 # ---- checkpoint files -------------------------------------------------------------------
@@ -241,9 +298,13 @@ def _config_key(config: TrialConfig) -> str:
 
 
 # ---- the trial ----------------------------------------------------------------------------
-def train(config: TrialConfig, report: Report | None = None) -> TrialResult:
+def train(
+    config: TrialConfig, report: Report | None = None, record: Record | None = None
+) -> TrialResult:
     """Run one trial (see the module docstring); ``report(step, metrics)`` sees each
-    evaluation, and again every evaluation restored from a checkpoint."""
+    evaluation, and again every evaluation restored from a checkpoint; ``record(filename,
+    data)`` each episode video of ``config.video_steps`` (again after a resume that
+    re-runs its step)."""
     start = time.perf_counter()
     torch.set_num_threads(config.threads)
     device = resolve_device(config.device)
@@ -253,12 +314,13 @@ def train(config: TrialConfig, report: Report | None = None) -> TrialResult:
         contextlib.closing(make_env(config.env, **make)) as env,
         contextlib.closing(make_env(config.env, **make)) as eval_env,
     ):
-        return _run(config, report, env, eval_env, device, start)
+        return _run(config, report, record, env, eval_env, device, start)
 
 
 def _run(
     config: TrialConfig,
     report: Report | None,
+    record: Record | None,
     env: Any,
     eval_env: Any,
     device: torch.device,
@@ -287,12 +349,30 @@ def _run(
     grid_set = set(grid)
     curve: dict[str, list[float]] = {"step": []}
 
-    def record(step: int, metrics: dict[str, float]) -> None:
+    def record_point(step: int, metrics: dict[str, float]) -> None:
         curve["step"].append(step)
         for k, v in metrics.items():
             curve.setdefault(k, []).append(v)
         if report is not None:
             report(step, metrics)
+
+    video_steps = set(config.video_steps) if record is not None else set()
+    video_format = ""
+    if video_steps:
+        from agent.video import default_format
+
+        video_format = default_format()
+    filmed = {"seconds": 0.0}
+
+    def evaluation(step: int) -> None:
+        film = Episode() if step in video_steps else None
+        metrics = evaluate(agent, eval_env, eval_seeds, keys, film)
+        if film is not None:
+            start_video = time.perf_counter()
+            data = episode_video(film, step, config.method, encoder, scale, video_format)
+            record(f"episode-step{step}.{video_format}", data)
+            filmed["seconds"] += film.seconds + time.perf_counter() - start_video
+        record_point(step, metrics)
 
     # resume: restore everything, re-report the curve so far
     step, seconds_before, resumed_from = 0, 0.0, None
@@ -303,6 +383,7 @@ def _run(
     if saved is not None:
         step = resumed_from = int(saved["step"])
         seconds_before = float(saved["seconds"])
+        filmed["seconds"] = float(saved.get("video_seconds", 0.0))
         agent.load_state_dict(saved["agent"])
         replay.load_state_dict(saved["replay"])
         torch.set_rng_state(saved["torch_rng"])
@@ -311,7 +392,8 @@ def _run(
         rng.bit_generator.state = saved["numpy_rng"]
         env.np_random.bit_generator.state = saved["env_rng"]
         for i, s in enumerate(saved["curve"]["step"]):
-            record(int(s), {k: float(v[i]) for k, v in saved["curve"].items() if k != "step"})
+            point = {k: float(v[i]) for k, v in saved["curve"].items() if k != "step"}
+            record_point(int(s), point)
     last_checkpoint = step
 
     def checkpoint() -> None:
@@ -321,6 +403,7 @@ def _run(
             "owner": config.checkpoint_owner,
             "step": step,
             "seconds": seconds_before + time.perf_counter() - start,
+            "video_seconds": filmed["seconds"],
             "curve": {k: list(v) for k, v in curve.items()},
             "agent": agent.state_dict(),
             "replay": replay.state_dict(),
@@ -332,7 +415,7 @@ def _run(
 
     outcome, diverged = "completed", None
     if step == 0:
-        record(0, evaluate(agent, eval_env, eval_seeds, keys))
+        evaluation(0)
     episode_done, goal_latent = True, None
     try:
         while step < config.total_steps:
@@ -360,7 +443,7 @@ def _run(
                             raise Diverged(step, name)
 
             if step in grid_set:
-                record(step, evaluate(agent, eval_env, eval_seeds, keys))
+                evaluation(step)
             episode_done = terminated or truncated
             due = step - last_checkpoint >= config.checkpoint_every and step < config.total_steps
             if episode_done and due and path is not None:
@@ -371,7 +454,7 @@ def _run(
         filler = diverged_metrics(tuple(metric_key(name) for name in env.metric_names))
         for s in grid:
             if s > curve["step"][-1]:
-                record(s, filler)
+                record_point(s, filler)
 
     metrics = {k: tuple(v) for k, v in curve.items() if k != "step"}
     return TrialResult(
@@ -384,4 +467,5 @@ def _run(
         seconds=seconds_before + time.perf_counter() - start,
         resumed_from=resumed_from,
         reward_scale=scale,
+        video_seconds=filmed["seconds"],
     )

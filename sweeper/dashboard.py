@@ -2,7 +2,8 @@
 
 The server reads the same database the driver writes (SQLite in WAL mode, so a live study
 can be watched), and shows what ``sweeper aggregate`` saved into the study: the per-method
-curves and AUC figures, and the comparison table in the study note. It binds to
+curves and AUC figures, and the comparison table in the study note; each trial's page
+plays its episode videos (the study's artifact store, ``sweeper.artifacts``). It binds to
 127.0.0.1 by default: the dashboard can edit notes and delete studies, so expose it
 beyond this machine only on purpose (``--host 0.0.0.0``). Ctrl-C or SIGTERM stops it.
 """
@@ -50,8 +51,11 @@ def run(args: argparse.Namespace) -> int:
     from sweeper.cli import spec_from_args
 
     try:
+        from sweeper.artifacts import artifact_location
+
         spec = spec_from_args(args)
-        return serve(spec.storage_url, spec.study, args.host, args.port)
+        artifacts = artifact_location(spec)
+        return serve(spec.storage_url, spec.study, args.host, args.port, artifacts=artifacts)
     except ValueError as e:  # SpecError, StorageError, no such study
         print(f"sweeper dashboard: {e}", file=sys.stderr)
         return 2
@@ -66,11 +70,14 @@ def serve(
     host: str = "127.0.0.1",
     port: int = 8080,
     ready: Callable[[str], None] | None = None,
+    artifacts: str | None = None,
 ) -> int:
     """Serve optuna-dashboard for ``storage_url`` until Ctrl-C or SIGTERM; return 0.
 
     ``ready(url)`` is called with the study's page once the server listens (default: print
-    it on stdout). Raises ValueError when the storage does not hold ``study_name``.
+    it on stdout). ``artifacts`` is the study's artifact location (``sweeper.artifacts``):
+    the trial pages then play the episode videos. Raises ValueError when the storage does
+    not hold ``study_name``.
     """
     from socketserver import ThreadingMixIn
     from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
@@ -108,7 +115,10 @@ def serve(
         def log_message(self, format: str, *args: Any) -> None:  # one line per request: noise
             pass
 
-    app = optuna_dashboard.wsgi(storage)
+    from sweeper.artifacts import ArtifactStore
+
+    store_of_artifacts = ArtifactStore(artifacts) if artifacts is not None else None
+    app = optuna_dashboard.wsgi(storage, artifact_store=store_of_artifacts)
     server = make_server(host, port, app, server_class=Server, handler_class=QuietHandler)
     url = f"http://{host}:{server.server_port}/dashboard/studies/{store.study_id}"
     main_thread = threading.current_thread() is threading.main_thread()

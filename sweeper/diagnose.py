@@ -4,8 +4,9 @@
     sweeper diagnose --env fetch_push --encoders pixel,cvae --option cvae.epochs=5
 
 For each env it writes, under ``--out`` (default ``runs/diagnostics/{env}``), one tidy CSV
-per analysis (``env, encoder, metric, value, ...``), a PNG figure each, and
-``summary.csv`` with the headline figures. Learned encoders are first fit on
+per analysis (``env, encoder, metric, value, ...``), a PNG figure each,
+``summary.csv`` with the headline figures, and ``views.png``: the env's camera view after a
+few resets beside each goal image (what the encoders see). Learned encoders are first fit on
 ``num_images`` frames of a uniformly random policy in the env. Algorithm 1 and the
 correlation draw (state, goal) pairs from the env's reset (``--start reset``, the
 algorithm) or uniformly from its state box (``--start uniform``); near goals are kept
@@ -216,9 +217,12 @@ def diagnose_env(
 
     from encoders import diagnostics as dx
     from encoders.diagnostics import plots
+    from sweeper.frames import env_views
 
     progress = not args.quiet
     out.mkdir(parents=True, exist_ok=True)
+    # what the encoders see: the camera view after a few resets beside their goal images
+    env_views(env_name, out / "views.png", image_size=env.image_size, seed=args.seed)
     frames: dict[int, Any] = {}  # by count: VAE and CVAE share their frames
     for name, encoder in encoders.items():
         if encoder.needs_fit:

@@ -1,16 +1,17 @@
 """Ray execution: a pool of worker actors, each running one trial at a time.
 
 Workers never touch the database. A worker runs ``agent.train`` (or any function with its
-signature) and buffers what the trial reports; the driver drains the buffers with small
-remote calls and learns of finished, failed and lost trials through ``WorkerPool.poll``.
-An exception inside a trial comes back as a value (message and traceback); a worker that
-dies (killed, out of memory, node lost) comes back as a ``Lost`` event, and the pool
-replaces the actor.
+signature) and buffers what the trial reports and records (episode videos, as bytes); the
+driver drains the buffers with small remote calls and learns of finished, failed and
+lost trials through ``WorkerPool.poll``. An exception inside a trial comes back as a value
+(message and traceback); a worker that dies (killed, out of memory, node lost) comes back
+as a ``Lost`` event, and the pool replaces the actor.
 """
 
 from __future__ import annotations
 
 import contextlib
+import inspect
 import os
 import re
 import socket
@@ -138,7 +139,14 @@ class TrialWorker:
             train = self._train
             if train is None:
                 from agent import train
-            result = train(config, report=lambda step, metrics: self._push(token, step, metrics))
+            calls: dict[str, Any] = {
+                "report": lambda step, metrics: self._push(token, step, metrics)
+            }
+            if "record" in inspect.signature(train).parameters:  # agent.train's videos
+                calls["record"] = lambda name, data: self._push(
+                    token, "recorded", {"filename": name, "data": data}
+                )
+            result = train(config, **calls)
             outcome: dict[str, Any] = {"result": result}
         except Exception as e:
             outcome = {"error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc()}
@@ -146,7 +154,8 @@ class TrialWorker:
         return outcome
 
     def drain(self) -> list[tuple[str, Any, Any]]:
-        """Events since the last drain: ``(token, "where", {...})``, ``(token, step, metrics)``."""
+        """Events since the last drain: ``(token, "where", {...})``, ``(token, step, metrics)``,
+        ``(token, "recorded", {"filename", "data"})``."""
         with self._lock:
             events, self._events = self._events, []
         return events
@@ -170,6 +179,13 @@ class Reported:
 
 
 @dataclass(frozen=True)
+class Recorded:
+    token: str
+    filename: str
+    data: bytes  # a file the trial made (an episode video)
+
+
+@dataclass(frozen=True)
 class Finished:
     token: str
     result: Any  # what train returned
@@ -188,7 +204,7 @@ class Lost:
     error: str  # why Ray says the worker is gone
 
 
-Event = Started | Reported | Finished | Errored | Lost
+Event = Started | Reported | Recorded | Finished | Errored | Lost
 
 
 @dataclass
@@ -357,6 +373,8 @@ class WorkerPool:
                 continue
             if step == "where":
                 events.append(Started(token, payload))
+            elif step == "recorded":
+                events.append(Recorded(token, payload["filename"], payload["data"]))
             else:
                 events.append(Reported(token, int(step), payload))
         return events

@@ -33,7 +33,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 if TYPE_CHECKING:
-    from sweeper.execution import WorkerPool
+    from sweeper.artifacts import ArtifactStore
+    from sweeper.execution import Recorded, WorkerPool
     from sweeper.plan import Plan, PlanEntry
     from sweeper.progress import Progress
     from sweeper.spec import StudySpec
@@ -143,6 +144,7 @@ class _Job:
     attempts: int = 0
     deaths: list[str] = field(default_factory=list)
     points: dict[int, dict[str, float]] = field(default_factory=dict)
+    artifacts: dict[str, str] = field(default_factory=dict)  # filename -> artifact id
 
     def curve(self) -> dict[str, list[Any]]:
         """The ``curve`` user attr: columnar, sorted by step, NaN/inf as null."""
@@ -344,9 +346,11 @@ def _drive(
 ) -> int:
     """The driver loop: dispatch keys to workers, write what comes back."""
     from agent.storage_io import is_uri
-    from sweeper.execution import Errored, Finished, Lost, Reported, Started
+    from sweeper.artifacts import ArtifactStore, artifact_location
+    from sweeper.execution import Errored, Finished, Lost, Recorded, Reported, Started
 
     execution = spec.execution
+    artifacts = ArtifactStore(artifact_location(spec))
     jobs: dict[str, _Job] = {}
     previous_handler = _sigterm_to_interrupt()
     try:
@@ -395,6 +399,8 @@ def _drive(
                     store.report(job.trial_id, {event.step: event.metrics["success_rate"]})
                     store.set_attrs(job.trial_id, {"curve": job.curve()})
                     progress.set_step(job.entry.key, event.step)
+                elif isinstance(event, Recorded):
+                    _store_artifact(store, artifacts, job, event, progress)
                 elif isinstance(event, Finished):
                     _record_result(store, job, event.result)
                     del jobs[event.token]
@@ -444,6 +450,25 @@ def _drive(
         _restore_sigterm(previous_handler)
 
 
+def _store_artifact(
+    store: StudyStore, artifacts: ArtifactStore, job: _Job, event: Recorded, progress: Progress
+) -> None:
+    """Upload a trial's file (an episode video) once per trial: a retried worker's second
+    recording is dropped. A failed upload is noted and the trial goes on."""
+    from sweeper.artifacts import upload_once
+
+    try:
+        artifact_id = upload_once(
+            store.storage, job.trial_id, event.filename, event.data, artifacts
+        )
+    except Exception as e:  # an unreachable object store must not fail the trial
+        progress.note(f"{job.entry.key}: could not store {event.filename}: {e}")
+        return
+    if artifact_id is not None:
+        job.artifacts[event.filename] = artifact_id
+        store.set_attrs(job.trial_id, {"videos": dict(job.artifacts)})
+
+
 def _record_result(store: StudyStore, job: _Job, result: Any) -> None:
     """Write a finished trial: every grid point, the curve, the outcome, then COMPLETE."""
     for index, step in enumerate(result.steps):
@@ -455,6 +480,7 @@ def _record_result(store: StudyStore, job: _Job, result: Any) -> None:
         "seconds": float(result.seconds),
         "resumed_from": result.resumed_from,
         "reward_scale": result.reward_scale,
+        "video_seconds": result.video_seconds,
     }
     if result.outcome == "diverged":
         attrs["diverged_step"] = result.diverged_step

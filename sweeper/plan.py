@@ -99,6 +99,7 @@ def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
                     threads=spec.execution.threads_per_trial,
                     checkpoint_every=spec.execution.checkpoint_every,
                     env_kwargs=dict(spec.env.options),
+                    video_steps=spec.video_steps,
                 )
                 drafts.append((method, config_id, seed, params, choices, config))
 

@@ -205,6 +205,18 @@ def _reward_scale(value: Any) -> str | float:
 
 
 RewardScale = Annotated[str | float, PlainValidator(_reward_scale)]
+
+
+def _video_steps(value: Any) -> str | tuple[int, ...]:
+    if value in ("last", "none"):
+        return value
+    steps = value if isinstance(value, list | tuple) else [value]
+    for step in steps:
+        if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+            raise _error(f"must be 'last', 'none' or a list of env steps >= 0, got {value!r}")
+    return tuple(sorted(set(steps)))
+
+
 UnitFloatChoices = _choices(UnitFloat)
 
 
@@ -476,6 +488,18 @@ class StudySpec(_Strict):
     budget: Budget = Field(description="a mapping with env_steps (required), seed_steps, ...")
     storage: str | None = Field(None, description="an SQLAlchemy URL; null: SQLite under runs/")
     checkpoints: str | None = Field(None, description="checkpoint directory; null: under runs/")
+    videos: Annotated[str | tuple[NonNegInt, ...], PlainValidator(_video_steps)] = Field(
+        "last",
+        description="evaluation steps whose first episode each trial films (observation "
+        "beside goal): 'last' (the final evaluation), 'none', or a list of env steps on the "
+        "evaluation grid",
+    )
+    artifacts: str | None = Field(
+        None,
+        description="where episode videos are stored (an Optuna artifact store): a directory "
+        "or an fsspec URI such as s3://bucket/prefix; null: artifacts/ beside the SQLite "
+        "database, or runs/<study>/artifacts",
+    )
     execution: Execution = Execution()
 
     @field_validator("study")
@@ -510,6 +534,25 @@ class StudySpec(_Strict):
                 f"postgresql+psycopg://user@host/db, or null; got {storage!r}"
             )
         return storage
+
+    @model_validator(mode="after")
+    def _videos_on_grid(self) -> StudySpec:
+        budget = self.budget
+        for step in self.video_steps:
+            if step % budget.eval_every or step > budget.env_steps:
+                raise _error(
+                    f"{step} is not an evaluation step (a multiple of budget.eval_every="
+                    f"{budget.eval_every} up to budget.env_steps={budget.env_steps})",
+                    at="videos",
+                )
+        return self
+
+    @property
+    def video_steps(self) -> tuple[int, ...]:
+        """The env steps at which each trial films an evaluation episode."""
+        if self.videos == "last":
+            return (self.budget.env_steps,)
+        return () if self.videos == "none" else self.videos
 
     @model_validator(mode="after")
     def _local_files(self) -> StudySpec:

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from PIL import Image
 
 from agent.envs import make_env
 from encoders import diagnostics as dx
@@ -314,6 +315,9 @@ def test_cli_writes_its_files(tmp_path, capsys) -> None:
     assert (summary.loc[drawn, "start"] == "reset").all()
     assert summary.loc[~drawn, "start"].isna().all()  # the other analyses draw no pairs
     assert "min_goal_distance" not in set(summary["metric"])
+    # what the encoders see: 4 resets, each the 32-pixel view and goal scaled to 96, labelled
+    views = np.asarray(Image.open(out / "views.png").convert("RGB"))
+    assert views.shape == (16 + 96, 4 * (2 * 96 + 6) + 3 * 6, 3)
 
 
 def test_cli_start_and_min_goal_distance_are_recorded(tmp_path) -> None:

@@ -177,6 +177,13 @@ class GoalImageEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     def render(self) -> np.ndarray | None:
         return self.render_image() if self.render_mode == "rgb_array" else None
 
+    def goal_image(self) -> np.ndarray:
+        """The goal's camera frame: the observation's in image mode, rendered on demand in
+        state mode (so the state oracle's episodes can be filmed too)."""
+        if self._goal_image is not None:
+            return self._goal_image.copy()
+        return self._render_goal_image()
+
     # ---- helpers --------------------------------------------------------------------
     def _observation(self) -> dict[str, np.ndarray]:
         if self.obs_mode == "image":

@@ -117,8 +117,15 @@ def run(args: argparse.Namespace) -> int:
     try:
         spec = spec_from_args(args)
         out = Path(args.out) if args.out else spec.run_dir / "aggregate"
+        from sweeper.artifacts import artifact_location
+
         result = aggregate(
-            spec.storage_url, spec.study, out, seed=spec.seed, dashboard=not args.no_dashboard
+            spec.storage_url,
+            spec.study,
+            out,
+            seed=spec.seed,
+            dashboard=not args.no_dashboard,
+            artifacts=artifact_location(spec),
         )
     except ValueError as e:  # SpecError, StorageError, an unknown or empty study
         print(f"sweeper aggregate: {e}", file=sys.stderr)
@@ -170,9 +177,11 @@ def aggregate(
     seed: int = 0,
     dashboard: bool = True,
     progress: Callable[[str], None] | None = None,
+    artifacts: str | None = None,
 ) -> AggregateResult:
     """Read the study, compute curves and statistics, write CSV, PNG and the report to
-    ``out``; with ``dashboard``, also save the comparison into the study."""
+    ``out``; with ``dashboard``, also save the comparison into the study; with the study's
+    ``artifacts`` location, add pictures to the report (``sweeper.frames``)."""
     import optuna
     from sqlalchemy.exc import SQLAlchemyError
 
@@ -195,7 +204,12 @@ def aggregate(
         files = write_tables(frame, tables, out)
         figures = draw_figures(frame, tables, out)
         report = out / "report.md"
-        report.write_text(report_markdown(frame, tables, alive), encoding="utf-8")
+        text = report_markdown(frame, tables, alive)
+        if artifacts is not None:  # final frames per method, the env's view (sweeper.frames)
+            from sweeper.frames import report_pictures
+
+            text += report_pictures(frame, storage, artifacts, out)
+        report.write_text(text, encoding="utf-8")
         if dashboard and store is not None:
             try:
                 save_to_dashboard(storage, frame, tables)
