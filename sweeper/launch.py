@@ -320,6 +320,7 @@ def _sync_and_drive(
 
     plan = build_plan(spec, study_uid=store.study_uid)  # its checkpoints are its own
     todo = store.sync(plan.entries, plan.hash)
+    _measure_random_agent(spec, store, stream)
     total = len(plan.entries)
     print(
         f"study {spec.study!r} in {redact(spec.storage_url)}: {total - len(todo)} of {total} "
@@ -331,6 +332,31 @@ def _sync_and_drive(
     pool.shrink(len(todo))
     progress = Progress(spec.study, plan.keys(), spec.budget.env_steps, stream)
     return _drive(spec, store, todo, pool, progress, beat, stream)
+
+
+def _measure_random_agent(spec: StudySpec, store: StudyStore, stream: TextIO) -> None:
+    """Measure the random agent's success rate once per study (the 0 of its normalised
+    scores, ``sweeper.random_agent``); a study that has it is not measured again. A
+    measurement that fails is a note, not a failure: the study is then not normalised."""
+    from sweeper.random_agent import ATTR, measure_random_agent
+
+    if not spec.random_episodes or ATTR in store.attrs:
+        return
+    print(
+        f"measuring a random agent's success rate on {spec.env.name} "
+        f"({spec.random_episodes} episodes)",
+        file=stream,
+    )
+    try:
+        measured = measure_random_agent(spec)
+    except Exception as e:  # e.g. no renderer on the driver's host
+        print(f"sweeper launch: note: could not measure the random agent: {e}", file=stream)
+        return
+    store.set_study_attr(ATTR, measured)
+    print(
+        f"random agent: success rate {measured['success_rate']:.3f} in {measured['seconds']:.1f} s",
+        file=stream,
+    )
 
 
 def _drive(

@@ -474,6 +474,12 @@ class StudySpec(_Strict):
         "the goal, so every method's reward is about 1) or a positive factor",
     )
     budget: Budget = Field(description="a mapping with env_steps (required), seed_steps, ...")
+    random_episodes: NonNegInt = Field(
+        100,
+        description="episodes of a uniformly random agent the driver runs once per study, "
+        "before its first trial, on the spec's env: its success rate is the 0 of the "
+        "normalised scores (0: not measured, the study is not normalised)",
+    )
     storage: str | None = Field(None, description="an SQLAlchemy URL; null: SQLite under runs/")
     checkpoints: str | None = Field(None, description="checkpoint directory; null: under runs/")
     execution: Execution = Execution()

@@ -351,6 +351,10 @@ class StudyStore:
         """The study's user attrs."""
         return self.storage.get_study_user_attrs(self.study_id)
 
+    def set_study_attr(self, key: str, value: Any) -> None:
+        """Set one study user attr (as the driver only)."""
+        self.storage.set_study_user_attr(self.study_id, key, value)
+
     def trials(self) -> list[FrozenTrial]:
         """All trials, oldest first."""
         return self.storage.get_all_trials(self.study_id, deepcopy=False)
