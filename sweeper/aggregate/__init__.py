@@ -99,32 +99,62 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``sweeper aggregate``."""
     from sweeper.cli import add_spec_arguments
 
-    add_spec_arguments(parser)
+    add_spec_arguments(parser, many=True)
     parser.add_argument(
-        "--out", metavar="DIR", help="output folder (default: runs/<study>/aggregate)"
+        "--out",
+        metavar="DIR",
+        help="output folder (default: runs/<study>/aggregate; for several specs "
+        "runs/combined/<study>+<study>...)",
     )
     parser.add_argument(
         "--no-dashboard",
         action="store_true",
-        help="do not save the comparison figures and note into the study for optuna-dashboard",
+        help="do not save the comparison figures and note into the study for optuna-dashboard "
+        "(several specs: nothing is saved into the studies)",
     )
 
 
 def run(args: argparse.Namespace) -> int:
-    """``sweeper aggregate``: exit 0, or 2 with a one-line message on a bad spec or study."""
+    """``sweeper aggregate``: exit 0, or 2 with a one-line message on a bad spec or study.
+
+    One spec: that study's report. Several: one combined report of normalised scores over
+    the studies (``sweeper.aggregate.combined``), with the first spec's seed.
+    """
+    from sweeper.aggregate.combined import aggregate_studies
     from sweeper.cli import spec_from_args
 
+    paths = [args.spec] if isinstance(args.spec, str) else args.spec
     try:
-        spec = spec_from_args(args)
-        out = Path(args.out) if args.out else spec.run_dir / "aggregate"
-        result = aggregate(
-            spec.storage_url, spec.study, out, seed=spec.seed, dashboard=not args.no_dashboard
-        )
+        specs = [spec_from_args(args, path) for path in paths]
+        if len(specs) == 1:
+            spec = specs[0]
+            out = Path(args.out) if args.out else spec.run_dir / "aggregate"
+            result = aggregate(
+                spec.storage_url, spec.study, out, seed=spec.seed, dashboard=not args.no_dashboard
+            )
+            files = result.files
+        else:
+            out = Path(args.out) if args.out else combined_dir([s.study for s in specs])
+            studies = [(s.storage_url, s.study) for s in specs]
+            result = aggregate_studies(studies, out, seed=specs[0].seed)
+            files = result.files
     except ValueError as e:  # SpecError, StorageError, an unknown or empty study
         print(f"sweeper aggregate: {e}", file=sys.stderr)
         return 2
-    print(f"wrote {len(result.files)} files to {out}; report: {result.report}")
+    print(f"wrote {len(files)} files to {out}; report: {result.report}")
     return 0
+
+
+def combined_dir(studies: list[str]) -> Path:
+    """``runs/combined/<a>+<b>+...``; a long list is shortened to its first name, the count
+    and a hash of all names, so the folder name stays valid."""
+    import hashlib
+
+    name = "+".join(studies)
+    if len(name) > 80:
+        digest = hashlib.sha256("\n".join(studies).encode()).hexdigest()[:8]
+        name = f"{studies[0]}+{len(studies) - 1}-more-{digest}"
+    return Path("runs") / "combined" / name
 
 
 # ---- the whole command ---------------------------------------------------------------

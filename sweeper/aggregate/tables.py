@@ -243,16 +243,21 @@ def profile_table(frame: pd.DataFrame, *, seed: int = 0) -> pd.DataFrame:
 
 
 def profile_frame(
-    scores: dict[str, dict[str, Any]], methods: list[str], *, seed: int = 0, strata=None
+    scores: dict[str, dict[str, Any]],
+    methods: list[str],
+    *,
+    seed: int = 0,
+    strata=None,
+    taus: tuple[float, ...] = TAUS,
 ) -> pd.DataFrame:
     """``profile_table``'s rows from ``scores[score][method]`` (arrays of scores), resampled
-    within ``strata[score][method]`` (stratum labels) when given."""
+    within ``strata[score][method]`` (stratum labels) when given, at thresholds ``taus``."""
     import numpy as np
     import pandas as pd
 
     from sweeper.stats import Group, profile_statistic, stratified_bootstrap
 
-    taus = np.asarray(TAUS)
+    taus = np.asarray(taus)
     parts = []
     for score, samples in scores.items():
         groups = {
