@@ -15,6 +15,10 @@ if TYPE_CHECKING:
 #: subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "launch": ("sweeper.launch", "run (or resume) a study from a YAML spec"),
+    "confirm": (
+        "sweeper.confirm",
+        "re-run each method's top-K configurations on fresh seeds (confirmation stage)",
+    ),
     "status": ("sweeper.status", "per-method ledger of a study: done, running, failed, left"),
     "dashboard": ("sweeper.dashboard", "open optuna-dashboard on a study's storage"),
     "aggregate": ("sweeper.aggregate", "per-method curves, AUC table, figures and report"),

@@ -39,6 +39,8 @@ if TYPE_CHECKING:
     from sweeper.spec import StudySpec
     from sweeper.storage import Heartbeat, StudyStore
 
+#: what a driver runs once it holds the study: its plan, bound to the study
+Stage = Callable[["StudySpec", "StudyStore"], "Plan"]
 #: seconds between the driver's heartbeats in the study
 HEARTBEAT_SECONDS = 15.0
 #: exit code of a launch refused because another live driver runs the study
@@ -166,12 +168,15 @@ def launch(
     *,
     train: Callable[..., Any] | None = None,
     stream: TextIO | None = None,
+    stage: Stage | None = None,
 ) -> int:
     """Run (or resume) the study of a validated ``spec``; return the exit code.
 
     Ray comes first, so a bad address writes nothing. A Ray that is already initialised is
     used and left running; otherwise one is started (local, or ``execution.address``) and
     shut down at the end. ``train`` replaces ``agent.train`` in the workers (tests).
+    ``stage`` gives the plan to run once the study is claimed (default: the search plan;
+    ``sweeper.confirm``: the confirmation stage); a StorageError from it exits 2.
     """
     import ray
 
@@ -224,7 +229,7 @@ def launch(
             stall_timeout=execution.stall_timeout,
         )
         try:
-            return _run_study(spec, plan, pool, stream)
+            return _run_study(spec, plan, pool, stream, stage)
         finally:
             pool.shutdown()
     finally:
@@ -275,7 +280,9 @@ def cannot_reach_message(address: str | None, error: BaseException) -> str:
     return message
 
 
-def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) -> int:
+def _run_study(
+    spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO, stage: Stage | None = None
+) -> int:
     """Open the study as its driver, its heartbeat beating until it lets go; run it."""
     import optuna
 
@@ -299,7 +306,10 @@ def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) ->
                         f"{store.attrs.get('revision')}; this is {attrs['revision']}",
                         file=stream,
                     )
-                return _sync_and_drive(spec, store, pool, beat, stream)
+                return _sync_and_drive(spec, store, pool, beat, stream, stage)
+        except StorageError as e:  # the stage cannot be run (sweeper confirm)
+            print(f"sweeper {'launch' if stage is None else 'confirm'}: {e}", file=stream)
+            return 2
         except StudyBusy as e:  # a heartbeat found another driver: this one looked dead
             print(f"sweeper launch: stopped: {e}", file=stream)
             return EXIT_BUSY
@@ -311,14 +321,20 @@ def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) ->
 
 
 def _sync_and_drive(
-    spec: StudySpec, store: StudyStore, pool: WorkerPool, beat: Heartbeat, stream: TextIO
+    spec: StudySpec,
+    store: StudyStore,
+    pool: WorkerPool,
+    beat: Heartbeat,
+    stream: TextIO,
+    stage: Stage | None = None,
 ) -> int:
     """Give the plan's keys their trials, then run what is left."""
     from sweeper.plan import build_plan
     from sweeper.progress import Progress
     from sweeper.storage import redact
 
-    plan = build_plan(spec, study_uid=store.study_uid)  # its checkpoints are its own
+    # bound to the study: its checkpoints are its own
+    plan = build_plan(spec, study_uid=store.study_uid) if stage is None else stage(spec, store)
     todo = store.sync(plan.entries, plan.hash)
     _measure_random_agent(spec, store, stream)
     total = len(plan.entries)

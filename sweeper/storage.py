@@ -462,6 +462,7 @@ class StudyStore:
                     "config_id": entry.config_id,
                     "seed": entry.seed,
                     "key": entry.key,
+                    "stage": getattr(entry, "stage", "search"),
                     "plan_hash": plan_hash,
                     "attempts": 0,
                 }

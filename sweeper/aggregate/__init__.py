@@ -20,6 +20,9 @@ attempt, then its re-run); its *current* trial (the highest number, as in
 ``sweeper.storage.current_trials``) counts, the others stay in ``frame.csv`` with
 ``counted = False``. AUC statistics and mean curves use the counted COMPLETE trials
 (diverged ones included: their curve is filled with zeros after the divergence).
+Trials of the confirmation stage (``sweeper confirm``, ``stage = "confirm"``) stay out of
+them: they are reported in a section of their own and ``confirm_table.csv``
+(``confirm_table``), the chosen configurations' search AUC beside their AUC on fresh seeds.
 """
 
 from __future__ import annotations
@@ -47,16 +50,18 @@ from sweeper.aggregate.frame import (
     load_study_frame,
     methods_of,
     scored,
+    stage_frame,
     study_info,
     trial_rows,
 )
-from sweeper.aggregate.report import report_markdown, table_markdown
+from sweeper.aggregate.report import confirm_markdown, report_markdown, table_markdown
 from sweeper.aggregate.tables import (
     AUC_COLUMNS,
     CONFIDENCE,
     RESAMPLES,
     Tables,
     auc_table,
+    confirm_table,
     improvement_table,
     iqm_curves,
     method_curves,
@@ -79,6 +84,7 @@ __all__ = [
     "Tables",
     "aggregate",
     "auc_table",
+    "confirm_table",
     "improvement_table",
     "iqm_curves",
     "load_study_frame",
@@ -88,6 +94,7 @@ __all__ = [
     "profile_table",
     "replace_note_section",
     "scored",
+    "stage_frame",
     "study_info",
     "study_tables",
     "table_markdown",
@@ -220,15 +227,23 @@ def aggregate(
     try:
         store = StudyStore.find(storage, study_name)
         alive = store is not None and store.driver_alive()
-        tables = study_tables(frame, driver_alive=alive, seed=seed)
+        search = stage_frame(frame, "search")  # the confirmation stage is reported apart
+        tables = study_tables(search, driver_alive=alive, seed=seed)
+        confirm = confirm_table(frame, driver_alive=alive, seed=seed)
         say(f"computed the tables in {time.perf_counter() - start:.1f} s; writing to {out}")
         files = write_tables(frame, tables, out)
-        figures = draw_figures(frame, tables, out)
+        figures = draw_figures(search, tables, out)
+        text = report_markdown(search, tables, alive)
+        if len(confirm):
+            confirm.to_csv(out / "confirm_table.csv", index=False)
+            files.append(out / "confirm_table.csv")
+            seeds = len(study_info(frame).attrs["confirm"]["seeds"])
+            text += "\n" + confirm_markdown(confirm, seeds)
         report = out / "report.md"
-        report.write_text(report_markdown(frame, tables, alive), encoding="utf-8")
+        report.write_text(text, encoding="utf-8")
         if dashboard and store is not None:
             try:
-                save_to_dashboard(storage, frame, tables)
+                save_to_dashboard(storage, search, tables)
                 say("saved the comparison figures and note into the study (optuna-dashboard)")
             except (SQLAlchemyError, optuna.exceptions.StorageInternalError) as e:
                 # e.g. a read-only database: the files are written, say so and go on

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from sweeper.aggregate.frame import load_study_frame, methods_of, study_info
+from sweeper.aggregate.frame import load_study_frame, methods_of, stage_frame, study_info
 from sweeper.aggregate.normalize import (
     SCORES,
     Anchors,
@@ -152,7 +152,7 @@ def aggregate_studies(
     labels = _labels([name for _, name in studies])
     frames, anchors, normalized, tables, improvements = [], [], [], [], []
     for (url, name), label in zip(studies, labels, strict=True):
-        frame = load_study_frame(url, name)
+        frame = stage_frame(load_study_frame(url, name), "search")  # confirm: its own report
         scores = trial_scores(frame)
         anchor = study_anchors(frame, scores)
         anchors.append(anchor)
