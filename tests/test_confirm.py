@@ -117,6 +117,16 @@ def test_confirm_reruns_the_top_k_on_fresh_seeds_and_is_reported_apart(tmp_path,
     assert "was confirmed with --top-k 2 --seeds 2" in capsys.readouterr().err
     assert len(trials_of(url)) == 20
 
+    capsys.readouterr()
+    assert cli.main(["status", spec_path]) == 0
+    status = capsys.readouterr().out.splitlines()
+    stage = status.index("confirmation stage: top 2 configurations per method on seeds 2, 3")
+    rows = {line.split()[0]: line.split()[1:] for line in status[stage + 1 :] if line}
+    assert rows["pixel"] == rows["linear"] == ["4", "4", "0", "0", "0", "0"]
+    assert rows["total"] == ["8", "8", "0", "0", "0", "0"]
+    search_rows = {line.split()[0]: line.split()[1:] for line in status[1:stage]}
+    assert search_rows["pixel"] == ["6", "6", "0", "0", "0", "0"]
+
     result = aggregate(url, "ci", tmp_path / "out", dashboard=False, progress=lambda m: None)
     table = result.table.set_index("method")
     assert table.loc["pixel", "n"] == 6  # search trials only
