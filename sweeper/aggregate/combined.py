@@ -110,8 +110,7 @@ def normalized_profiles(scores: pd.DataFrame, methods: list[str], *, seed: int =
         s: {m: p[f"{s}_norm"].to_numpy() for m, p in scores.groupby("method")} for s in SCORES
     }
     strata = {s: {m: p["study"].to_numpy() for m, p in scores.groupby("method")} for s in SCORES}
-    profiles = profile_frame(values, methods, seed=seed, strata=strata, taus=NORMALIZED_TAUS)
-    return profiles
+    return profile_frame(values, methods, seed=seed, strata=strata, taus=NORMALIZED_TAUS)
 
 
 def anchors_frame(anchors: Sequence[Anchors]) -> pd.DataFrame:
@@ -239,8 +238,9 @@ def draw_normalized(table: pd.DataFrame, path: Path) -> Path:
 
 NORMALIZATION = f"""\
 How to read this: every study is scored on its own scale. 0 is the random agent's success rate
-on the study's env (the share of 100 uniformly random episodes that reach the goal at any step,
-measured once by the driver before the study's first trial); 1 is the study's best control
+on the study's env (the share of the spec's `random_episodes`, default 100, uniformly random
+episodes that reach the goal at any step, measured once by the driver before the study's first
+trial); 1 is the study's best control
 method (`state`, the state oracle, or `true_reward`, images with the true reward, whichever has
 the higher IQM AUC). A trial's normalised AUC is (AUC - random) / (control's IQM AUC - random),
 its normalised final success (final success - random) / (control's IQM final success - random),
