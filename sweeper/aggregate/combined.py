@@ -240,16 +240,16 @@ NORMALIZATION = f"""\
 How to read this: every study is scored on its own scale. 0 is the random agent's success rate
 on the study's env (the share of the spec's `random_episodes`, default 100, uniformly random
 episodes that reach the goal at any step, measured once by the driver before the study's first
-trial); 1 is the study's best control
-method (`state`, the state oracle, or `true_reward`, images with the true reward, whichever has
-the higher IQM AUC). A trial's normalised AUC is (AUC - random) / (control's IQM AUC - random),
-its normalised final success (final success - random) / (control's IQM final success - random),
-the final success being the success rate at the last evaluation. Above 1: better than the
-control; below 0: worse than acting at random. Statistics pool every normalised study's done
-trials of a method; their {CONFIDENCE:.0%} intervals are percentile bootstraps ({RESAMPLES}
-resamples) that resample each study's trials among themselves (each study a stratum, so it
-keeps its weight). Methods run on different sets of studies (column *studies*) are not
-directly comparable. Optimality gap: mean shortfall below 1 (the control)."""
+trial); 1 is the study's best control method (`state`, the state oracle, or `true_reward`,
+images with the true reward, whichever has the higher IQM AUC). A trial's normalised AUC is
+(AUC - random) / (control's IQM AUC - random), its normalised final success (final success -
+random) / (control's IQM final success - random), the final success being the success rate at
+the last evaluation. Above 1: better than the control; below 0: worse than acting at random.
+Statistics pool every normalised study's done trials of a method; their {CONFIDENCE:.0%}
+intervals are percentile bootstraps ({RESAMPLES} resamples) that resample each study's trials
+among themselves (each study a stratum, so it keeps its weight). Methods run on different sets
+of studies (column *studies*) are not directly comparable. Optimality gap: mean shortfall
+below 1 (the control)."""
 
 
 def combined_markdown(
@@ -275,8 +275,8 @@ def combined_markdown(
     for row in anchors.to_dict("records"):
         status = "yes" if row["normalized"] else f"**no**: {row['problem']}"
         lines.append(
-            f"| {row['study']} | {row['env'] or '–'} | {_fmt(row['random_success'])} "
-            f"| {row['control'] or '–'} | {_fmt(row['control_iqm_auc'])} "
+            f"| {row['study']} | {_fmt(row['env'])} | {_fmt(row['random_success'])} "
+            f"| {_fmt(row['control'])} | {_fmt(row['control_iqm_auc'])} "
             f"| {_fmt(row['control_iqm_final_success'])} | {status} |"
         )
     skipped = anchors[~anchors["normalized"]]
