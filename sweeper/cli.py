@@ -15,6 +15,10 @@ if TYPE_CHECKING:
 #: subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "launch": ("sweeper.launch", "run (or resume) a study from a YAML spec"),
+    "confirm": (
+        "sweeper.confirm",
+        "re-run each method's top-K configurations on fresh seeds (confirmation stage)",
+    ),
     "status": ("sweeper.status", "per-method ledger of a study: done, running, failed, left"),
     "dashboard": ("sweeper.dashboard", "open optuna-dashboard on a study's storage"),
     "aggregate": ("sweeper.aggregate", "per-method curves, AUC table, figures and report"),
@@ -22,9 +26,13 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def add_spec_arguments(parser: argparse.ArgumentParser) -> None:
-    """The arguments every study subcommand takes: the spec file and a storage override."""
-    parser.add_argument("spec", help="the study spec, a YAML file (see studies/)")
+def add_spec_arguments(parser: argparse.ArgumentParser, many: bool = False) -> None:
+    """The arguments every study subcommand takes: the spec file (``many``: one or more, as
+    a list) and a storage override."""
+    if many:
+        parser.add_argument("spec", nargs="+", help="study specs, YAML files (see studies/)")
+    else:
+        parser.add_argument("spec", help="the study spec, a YAML file (see studies/)")
     parser.add_argument(
         "--storage",
         metavar="URL",
@@ -33,11 +41,12 @@ def add_spec_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def spec_from_args(args: argparse.Namespace) -> StudySpec:
-    """The spec named by ``args.spec`` with ``--storage`` applied; raises ``SpecError``."""
+def spec_from_args(args: argparse.Namespace, path: str | None = None) -> StudySpec:
+    """The spec named by ``path`` (default ``args.spec``) with ``--storage`` applied;
+    raises ``SpecError``."""
     from sweeper.spec import load_spec
 
-    spec = load_spec(args.spec)
+    spec = load_spec(args.spec if path is None else path)
     return spec if args.storage is None else spec.with_overrides(storage=args.storage)
 
 

@@ -40,6 +40,8 @@ if TYPE_CHECKING:
     from sweeper.spec import StudySpec
     from sweeper.storage import Heartbeat, StudyStore
 
+#: what a driver runs once it holds the study: its plan, bound to the study
+Stage = Callable[["StudySpec", "StudyStore"], "Plan"]
 #: seconds between the driver's heartbeats in the study
 HEARTBEAT_SECONDS = 15.0
 #: exit code of a launch refused because another live driver runs the study
@@ -168,12 +170,15 @@ def launch(
     *,
     train: Callable[..., Any] | None = None,
     stream: TextIO | None = None,
+    stage: Stage | None = None,
 ) -> int:
     """Run (or resume) the study of a validated ``spec``; return the exit code.
 
     Ray comes first, so a bad address writes nothing. A Ray that is already initialised is
     used and left running; otherwise one is started (local, or ``execution.address``) and
     shut down at the end. ``train`` replaces ``agent.train`` in the workers (tests).
+    ``stage`` gives the plan to run once the study is claimed (default: the search plan;
+    ``sweeper.confirm``: the confirmation stage); a StorageError from it exits 2.
     """
     import ray
 
@@ -226,7 +231,7 @@ def launch(
             stall_timeout=execution.stall_timeout,
         )
         try:
-            return _run_study(spec, plan, pool, stream)
+            return _run_study(spec, plan, pool, stream, stage)
         finally:
             pool.shutdown()
     finally:
@@ -277,7 +282,9 @@ def cannot_reach_message(address: str | None, error: BaseException) -> str:
     return message
 
 
-def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) -> int:
+def _run_study(
+    spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO, stage: Stage | None = None
+) -> int:
     """Open the study as its driver, its heartbeat beating until it lets go; run it."""
     import optuna
 
@@ -301,7 +308,10 @@ def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) ->
                         f"{store.attrs.get('revision')}; this is {attrs['revision']}",
                         file=stream,
                     )
-                return _sync_and_drive(spec, store, pool, beat, stream)
+                return _sync_and_drive(spec, store, pool, beat, stream, stage)
+        except StorageError as e:  # the stage cannot be run (sweeper confirm)
+            print(f"sweeper {'launch' if stage is None else 'confirm'}: {e}", file=stream)
+            return 2
         except StudyBusy as e:  # a heartbeat found another driver: this one looked dead
             print(f"sweeper launch: stopped: {e}", file=stream)
             return EXIT_BUSY
@@ -313,15 +323,22 @@ def _run_study(spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO) ->
 
 
 def _sync_and_drive(
-    spec: StudySpec, store: StudyStore, pool: WorkerPool, beat: Heartbeat, stream: TextIO
+    spec: StudySpec,
+    store: StudyStore,
+    pool: WorkerPool,
+    beat: Heartbeat,
+    stream: TextIO,
+    stage: Stage | None = None,
 ) -> int:
     """Give the plan's keys their trials, then run what is left."""
     from sweeper.plan import build_plan
     from sweeper.progress import Progress
     from sweeper.storage import redact
 
-    plan = build_plan(spec, study_uid=store.study_uid)  # its checkpoints are its own
+    # bound to the study: its checkpoints are its own
+    plan = build_plan(spec, study_uid=store.study_uid) if stage is None else stage(spec, store)
     todo = store.sync(plan.entries, plan.hash)
+    _measure_random_agent(spec, store, stream)
     total = len(plan.entries)
     print(
         f"study {spec.study!r} in {redact(spec.storage_url)}: {total - len(todo)} of {total} "
@@ -333,6 +350,31 @@ def _sync_and_drive(
     pool.shrink(len(todo))
     progress = Progress(spec.study, plan.keys(), spec.budget.env_steps, stream)
     return _drive(spec, store, todo, pool, progress, beat, stream)
+
+
+def _measure_random_agent(spec: StudySpec, store: StudyStore, stream: TextIO) -> None:
+    """Measure the random agent's success rate once per study (the 0 of its normalised
+    scores, ``sweeper.random_agent``); a study that has it is not measured again. A
+    measurement that fails is a note, not a failure: the study is then not normalised."""
+    from sweeper.random_agent import ATTR, measure_random_agent
+
+    if not spec.random_episodes or ATTR in store.attrs:
+        return
+    print(
+        f"measuring a random agent's success rate on {spec.env.name} "
+        f"({spec.random_episodes} episodes)",
+        file=stream,
+    )
+    try:
+        measured = measure_random_agent(spec)
+    except Exception as e:  # e.g. no renderer on the driver's host
+        print(f"sweeper launch: note: could not measure the random agent: {e}", file=stream)
+        return
+    store.set_study_attr(ATTR, measured)
+    print(
+        f"random agent: success rate {measured['success_rate']:.3f} in {measured['seconds']:.1f} s",
+        file=stream,
+    )
 
 
 def _drive(

@@ -39,6 +39,7 @@ class PlanEntry:
     params: dict[str, bool | int | float | str]
     choices: dict[str, tuple[bool | int | float | str, ...]]
     trial_config: TrialConfig
+    stage: str = "search"  # or "confirm": a re-run of a chosen config on a fresh seed
 
 
 @dataclass(frozen=True)
@@ -134,3 +135,51 @@ def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
         for method, config_id, seed, params, choices, config in drafts
     )
     return Plan(entries=entries, hash=plan_hash)
+
+
+#: the first part of a confirmation key
+CONFIRM = "confirm"
+
+
+def confirm_key(method: str, config_id: int, seed: int) -> str:
+    """The key of one confirmation trial: ``"confirm/{method}/{config_id}/{seed}"``."""
+    return f"{CONFIRM}/{trial_key(method, config_id, seed)}"
+
+
+def fresh_seeds(search_seeds: tuple[int, ...], count: int) -> tuple[int, ...]:
+    """``count`` seeds the search did not use: the ones after its largest seed."""
+    start = max(search_seeds) + 1
+    return tuple(range(start, start + count))
+
+
+def confirm_plan(search: Plan, configs: dict[str, list[int]], seeds: tuple[int, ...]) -> Plan:
+    """The confirmation stage: each ``(method, config_id)`` of ``configs`` run again, with
+    the same parameters, on every one of ``seeds`` (fresh: not the search's).
+
+    Entries are the search plan's (the study-bound one, so checkpoints are the study's own)
+    with the seed, key (``confirm_key``), stage and checkpoint folder
+    (``<search folder>/confirm/<method>/<config_id>/<seed>``) replaced. The hash covers the
+    search plan's hash and the keys, so a different choice is a different budget.
+    """
+    first = {}
+    for entry in search.entries:
+        first.setdefault((entry.method, entry.config_id), entry)
+    entries = []
+    for method in sorted(configs):
+        for config_id in sorted(configs[method]):
+            entry = first[(method, config_id)]
+            root = (entry.trial_config.checkpoint_dir or "").rsplit("/", 3)[0]
+            for seed in seeds:
+                config = dataclasses.replace(
+                    entry.trial_config,
+                    seed=seed,
+                    checkpoint_dir=f"{root}/{CONFIRM}/{method}/{config_id}/{seed}",
+                )
+                key = confirm_key(method, config_id, seed)
+                entries.append(
+                    dataclasses.replace(
+                        entry, seed=seed, key=key, trial_config=config, stage=CONFIRM
+                    )
+                )
+    text = json.dumps({"search": search.hash, "keys": [e.key for e in entries]})
+    return Plan(entries=tuple(entries), hash=hashlib.sha256(text.encode()).hexdigest())

@@ -466,6 +466,13 @@ class Execution(_Strict):
         return address
 
 
+class ConfirmSpec(_Strict):
+    """The confirmation stage (``sweeper confirm``): against the winner's curse."""
+
+    top_k: PosInt = Field(description="configurations per method re-run, best search AUC first")
+    seeds: PosInt = Field(description="fresh seeds (not the search's) each one runs on")
+
+
 class StudySpec(_Strict):
     """A whole study: what runs (env, methods, search space, budget) and where."""
 
@@ -486,6 +493,15 @@ class StudySpec(_Strict):
         "the goal, so every method's reward is about 1) or a positive factor",
     )
     budget: Budget = Field(description="a mapping with env_steps (required), seed_steps, ...")
+    random_episodes: NonNegInt = Field(
+        100,
+        description="episodes of a uniformly random agent the driver runs once per study, "
+        "before its first trial, on the spec's env: its success rate is the 0 of the "
+        "normalised scores (0: not measured, the study is not normalised)",
+    )
+    confirm: ConfirmSpec | None = Field(
+        None, description="top_k and seeds of `sweeper confirm` (its flags override them)"
+    )
     storage: str | None = Field(None, description="an SQLAlchemy URL; null: SQLite under runs/")
     checkpoints: str | None = Field(None, description="checkpoint directory; null: under runs/")
     videos: Annotated[str | tuple[NonNegInt, ...], PlainValidator(_video_steps)] = Field(

@@ -13,6 +13,8 @@ bootstrap replicate:
   trials that share a SAC configuration and seed (the sweep's paired design).
 - ``score_profile``: the fraction of scores above each threshold tau (a performance
   profile, Agarwal et al. 2021).
+- ``normalize``: scores of different tasks on one scale between two anchors (as Atari's
+  human-normalised scores), so studies of several envs can be pooled.
 
 The resampling is separate: ``stratified_bootstrap`` is the one routine behind every
 interval. A ``Group`` holds aligned arrays whose first axis is the unit resampled as a whole
@@ -27,6 +29,7 @@ The AUC itself is ``agent.metrics.normalized_auc`` (the trial computes it).
 from __future__ import annotations
 
 import functools
+import math
 import zlib
 from collections.abc import Callable, Mapping, Sequence
 from typing import NamedTuple
@@ -121,6 +124,19 @@ def score_profile(values: object, taus: object, axis: int = -1) -> np.ndarray:
     counts = counts.reshape(*x.shape[:-1], t.size + 1)
     above = np.cumsum(counts[..., ::-1], axis=-1)[..., ::-1][..., 1:]  # values with > j taus below
     return above / x.shape[-1]
+
+
+def normalize(values: object, zero: float, one: float) -> np.ndarray:
+    """``(x - zero) / (one - zero)``: scores of different tasks on one scale, 0 at the
+    ``zero`` anchor (a random agent), 1 at the ``one`` anchor (a reference method).
+
+    Affine, so the IQM, mean and median of normalised scores are the normalised statistics
+    and the ranking within a task is kept. ``one`` must lie above ``zero``: otherwise the
+    task gives no scale (its reference does no better than chance).
+    """
+    if not (math.isfinite(zero) and math.isfinite(one)) or one <= zero:
+        raise ValueError(f"normalise needs finite anchors with one > zero, got {zero}, {one}")
+    return (np.asarray(values, dtype=np.float64) - zero) / (one - zero)
 
 
 def several(*statistics: Statistic) -> Statistic:

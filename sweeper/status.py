@@ -75,6 +75,14 @@ def status_lines(study: str, url: str, keys: list[str], plan_hash: str) -> list[
         storage.remove_session()
         storage.engine.dispose()
     lines = _table(ledger(keys, trials, alive))
+    confirm = attrs.get("confirm")
+    if confirm:  # the confirmation stage (sweeper confirm), counted apart
+        lines.append(
+            f"confirmation stage: top {confirm['top_k']} configurations per method on seeds "
+            f"{', '.join(map(str, confirm['seeds']))}"
+        )
+        lines += _table(ledger(confirm["keys"], trials, alive))
+        keys = [*keys, *confirm["keys"]]
     driver = attrs.get("driver")
     if alive:
         lines.append(f"driver: running (host {driver['host']}, pid {driver['pid']})")

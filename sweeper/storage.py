@@ -258,11 +258,13 @@ def key_status(state: str | None, outcome: Any, driver_alive: bool) -> str:
 def ledger(
     plan_keys: Sequence[str], trials: Iterable[FrozenTrial], driver_alive: bool
 ) -> dict[str, Counts]:
-    """Per-method counts of the planned keys (method = the key's first part)."""
+    """Per-method counts of the planned keys (method = the key's first part, after the
+    ``confirm/`` of a confirmation key)."""
     current = current_trials(trials)
     tally: dict[str, dict[str, int]] = {}
     for key in plan_keys:
-        line = tally.setdefault(key.split("/")[0], dict.fromkeys(Counts.__dataclass_fields__, 0))
+        method = key.removeprefix("confirm/").split("/")[0]
+        line = tally.setdefault(method, dict.fromkeys(Counts.__dataclass_fields__, 0))
         line["planned"] += 1
         trial = current.get(key)
         outcome = trial.user_attrs.get("outcome") if trial else None
@@ -350,6 +352,10 @@ class StudyStore:
     def attrs(self) -> dict[str, Any]:
         """The study's user attrs."""
         return self.storage.get_study_user_attrs(self.study_id)
+
+    def set_study_attr(self, key: str, value: Any) -> None:
+        """Set one study user attr (as the driver only)."""
+        self.storage.set_study_user_attr(self.study_id, key, value)
 
     def trials(self) -> list[FrozenTrial]:
         """All trials, oldest first."""
@@ -458,6 +464,7 @@ class StudyStore:
                     "config_id": entry.config_id,
                     "seed": entry.seed,
                     "key": entry.key,
+                    "stage": getattr(entry, "stage", "search"),
                     "plan_hash": plan_hash,
                     "attempts": 0,
                 }

@@ -47,11 +47,15 @@ def write_synthetic_study(
     steps: tuple[int, ...] = (0, 1000, 2000, 3000, 4000),
     special: Special | None = None,
     seed: int = 0,
+    env: str = "sawyer_door",
+    random_success: float | None = None,
 ) -> optuna.Study:
     """Create ``study_name`` with one trial per (method, config_id, seed) and return it.
 
     ``special=None`` puts one of each special fate on a different key (needs >= 2 methods
     and >= 2 configs). Methods get increasing skill, so later methods score higher.
+    ``random_success``: the random agent's success rate, stored as the driver stores it
+    (study attr ``random_agent``); None: not measured.
     """
     if special is None:
         special = Special(
@@ -64,7 +68,9 @@ def write_synthetic_study(
     grid = np.asarray(steps, dtype=np.float64)
     plan = [f"{m}/{c}/{s}" for m in methods for c in range(configs) for s in seeds]
     study = optuna.create_study(storage=storage_url, study_name=study_name, direction="maximize")
-    study.set_user_attr("env", "sawyer_door")
+    study.set_user_attr("env", env)
+    if random_success is not None:
+        study.set_user_attr("random_agent", {"episodes": 100, "success_rate": random_success})
     study.set_user_attr("metric_names", list(DOOR_METRICS))
     study.set_user_attr("plan", plan)
     study.set_user_attr("plan_hash", "synthetic")

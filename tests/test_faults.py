@@ -365,3 +365,127 @@ def test_a_stopped_worker_is_noticed_and_its_trial_retried(tmp_path, ray_address
     assert retried.user_attrs["attempts"] == 2
     assert "no answer" in retried.user_attrs["worker_deaths"][0]
     assert retried.user_attrs["resumed_from"] >= 100
+
+
+CONFIRMER = """
+import sys, time, zlib
+from pathlib import Path
+from agent.config import TrialResult
+from sweeper.confirm import confirm
+from sweeper.launch import launch, prepare
+
+spec_path, address, stage = sys.argv[1], sys.argv[2], sys.argv[3]
+
+
+def steady(config, report=None):
+    # a success rate fixed by the config and seed; an evaluation every second, each followed
+    # by a checkpoint (a marker file) that a re-run resumes from
+    level = (zlib.crc32(f"{config.sac}/{config.method}/{config.seed}".encode()) % 100) / 100
+    marker = Path(config.checkpoint_dir) / "checkpoint.pt"
+    resumed_from = int(marker.read_text()) if marker.exists() else None
+    steps = list(range(0, config.total_steps + 1, config.eval_every))
+    for step in steps:
+        if stage == "confirm" and (resumed_from is None or step > resumed_from):
+            time.sleep(1.0)
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            marker.write_text(str(step))
+        report(step, {"success_rate": level, "final_distance": 1 - level})
+    metrics = {"success_rate": (level,) * len(steps), "final_distance": (1 - level,) * len(steps)}
+    return TrialResult(steps=tuple(steps), metrics=metrics, auc=level, resumed_from=resumed_from)
+
+
+spec, plan = prepare(spec_path, address=address)
+if stage == "search":
+    sys.exit(launch(spec, plan, train=steady))
+sys.exit(confirm(spec, plan, 2, 2, train=steady))
+"""
+
+
+@pytest.mark.slow
+def test_confirm_stage_ledger_is_exact_under_a_worker_kill_and_a_driver_relaunch(
+    tmp_path, ray_address
+):
+    """The confirmation stage has the search's semantics: a killed worker's trial re-runs from
+    its checkpoint in the same trial; a killed driver's trials are re-run by the next
+    `sweeper confirm`; every confirm key is COMPLETE exactly once, the search untouched."""
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    spec = write_spec(
+        tmp_path / "spec.yaml",
+        study="confirm",
+        trials_per_method=3,
+        storage=url,
+        checkpoints=str(tmp_path / "checkpoints"),
+        budget={"env_steps": 300},
+        execution={"retries": 1, "max_concurrent": 2},
+        random_episodes=10,
+    )
+    search_keys = prepare(str(spec))[1].keys()
+    log = tmp_path / "driver.log"
+
+    def driver(stage: str) -> subprocess.Popen:
+        return subprocess.Popen(
+            [sys.executable, "-c", CONFIRMER, str(spec), ray_address, stage],
+            stdout=log.open("a"),
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            cwd=tmp_path,
+        )
+
+    search = driver("search")
+    assert search.wait(timeout=240) == 0, log.read_text()
+    searched = {t.number: t.datetime_complete for t in trials_of(url, "confirm")}
+    assert len(searched) == len(search_keys) == 6
+
+    def confirming():
+        return [t for t in trials_of(url, "confirm") if t.user_attrs.get("stage") == "confirm"]
+
+    # 1. SIGKILL a worker of the confirm stage after its trial's first checkpoint
+    first = driver("confirm")
+    try:
+
+        def checkpointed_worker():
+            for trial in confirming():
+                if trial.state == TrialState.RUNNING and 100 in trial.intermediate_values:
+                    return trial.user_attrs["key"], trial.user_attrs["worker"]["pid"]
+            return None
+
+        victim, pid = wait_for(checkpointed_worker, 120, "a confirm trial's checkpoint")
+        os.kill(pid, signal.SIGKILL)
+
+        # 2. once the victim is done (re-run in its trial), SIGKILL the driver mid-stage
+        def victim_done_and_another_running():
+            trials = confirming()
+            done = [t for t in trials if t.user_attrs["key"] == victim]
+            running = [
+                t for t in trials if t.state == TrialState.RUNNING and "worker" in t.user_attrs
+            ]
+            return done and done[0].state == TrialState.COMPLETE and running
+
+        wait_for(victim_done_and_another_running, 120, "the victim done, another running")
+        kill_group(first, signal.SIGKILL)
+        first.wait(timeout=30)
+    finally:
+        kill_group(first, signal.SIGKILL)
+    stale = {t.number for t in confirming() if t.state == TrialState.RUNNING}
+    assert stale  # the killed driver left confirm trials RUNNING
+    retried = next(t for t in confirming() if t.user_attrs["key"] == victim)
+    assert retried.user_attrs["attempts"] == 2 and len(retried.user_attrs["worker_deaths"]) == 1
+    assert retried.user_attrs["resumed_from"] >= 100
+
+    # 3. relaunch the stage to the end: exact, nothing re-chosen, the search untouched
+    second = driver("confirm")
+    try:
+        assert second.wait(timeout=240) == 0, log.read_text()
+    finally:
+        kill_group(second, signal.SIGKILL)
+    trials = trials_of(url, "confirm")
+    chosen = optuna.load_study(study_name="confirm", storage=url).user_attrs["confirm"]
+    assert len(chosen["keys"]) == 2 * 2 * 2 and chosen["seeds"] == [1, 2]
+    by_key = check_exact_budget(trials, [*search_keys, *chosen["keys"]])
+    for number, when in searched.items():
+        assert trials[number].datetime_complete == when
+    assert by_key[victim].number == retried.number  # a worker death keeps its trial
+    for number in stale:  # a dead driver's trial is superseded, once
+        successor = trials[trials[number].user_attrs["superseded_by"]]
+        assert successor.user_attrs["key"] == trials[number].user_attrs["key"]
+        assert successor.state == TrialState.COMPLETE

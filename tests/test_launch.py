@@ -490,3 +490,31 @@ def test_shrink_kills_idle_workers_only_down_to_the_size():
         _wait_idle(pool, 1)
     finally:
         pool.shutdown()
+
+
+def test_the_driver_measures_the_random_agent_once_per_study(tmp_path, monkeypatch, capsys):
+    """The 0 of the normalised scores: measured before the first trial with the spec's env
+    settings, stored in the study, not measured again on a relaunch; random_episodes: 0
+    skips it."""
+    from sweeper import random_agent
+
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    spec, plan = prepare(str(write_spec(tmp_path / "ci.yaml", storage=url, random_episodes=40)))
+    assert launch(spec, plan, train=always_succeed) == 0
+    measured = load(url).user_attrs["random_agent"]
+    assert measured == {**random_agent.measure_random_agent(spec), "seconds": measured["seconds"]}
+    assert measured["episodes"] == 40 and 0.0 <= measured["success_rate"] <= 1.0
+    first = load(url).get_trials()[0].datetime_start
+    assert "random agent: success rate" in capsys.readouterr().err
+
+    calls = []
+    monkeypatch.setattr(random_agent, "measure_random_agent", calls.append)
+    assert launch(spec, plan, train=always_succeed) == 0  # a relaunch: nothing to measure
+    assert calls == []
+    assert load(url).user_attrs["random_agent"] == measured
+    assert load(url).get_trials()[0].datetime_start == first
+
+    url = f"sqlite:///{tmp_path / 'none.db'}"
+    spec, plan = prepare(str(write_spec(tmp_path / "none.yaml", storage=url, random_episodes=0)))
+    assert launch(spec, plan, train=always_succeed) == 0
+    assert "random_agent" not in load(url).user_attrs

@@ -17,6 +17,7 @@ from sweeper.stats import (
     iqm,
     mean,
     median,
+    normalize,
     optimality_gap,
     probability_of_improvement,
     profile_statistic,
@@ -266,3 +267,16 @@ def test_groups_are_checked():
         stratified_bootstrap(mean, {"a": [1.0, np.inf]})
     with pytest.raises(ValueError, match="strata"):
         stratified_bootstrap(mean, {"a": Group((np.ones(3),), np.zeros(2))})
+
+
+def test_normalize_hand_computed():
+    # random agent 0.2 -> 0, control 0.6 -> 1; halfway 0.4 -> 0.5; worse than random < 0
+    np.testing.assert_allclose(
+        normalize([0.2, 0.6, 0.4, 0.0, 0.8], 0.2, 0.6), [0, 1, 0.5, -0.5, 1.5]
+    )
+    # affine: the IQM of normalised scores is the normalised IQM
+    x = np.random.default_rng(0).uniform(size=13)
+    assert iqm(normalize(x, 0.1, 0.7)) == pytest.approx((iqm(x) - 0.1) / 0.6)
+    for zero, one in [(0.5, 0.5), (0.6, 0.2), (0.0, float("nan"))]:
+        with pytest.raises(ValueError, match="one > zero"):
+            normalize([0.3], zero, one)

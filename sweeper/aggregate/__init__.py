@@ -20,6 +20,9 @@ attempt, then its re-run); its *current* trial (the highest number, as in
 ``sweeper.storage.current_trials``) counts, the others stay in ``frame.csv`` with
 ``counted = False``. AUC statistics and mean curves use the counted COMPLETE trials
 (diverged ones included: their curve is filled with zeros after the divergence).
+Trials of the confirmation stage (``sweeper confirm``, ``stage = "confirm"``) stay out of
+them: they are reported in a section of their own and ``confirm_table.csv``
+(``confirm_table``), the chosen configurations' search AUC beside their AUC on fresh seeds.
 """
 
 from __future__ import annotations
@@ -47,16 +50,18 @@ from sweeper.aggregate.frame import (
     load_study_frame,
     methods_of,
     scored,
+    stage_frame,
     study_info,
     trial_rows,
 )
-from sweeper.aggregate.report import report_markdown, table_markdown
+from sweeper.aggregate.report import confirm_markdown, report_markdown, table_markdown
 from sweeper.aggregate.tables import (
     AUC_COLUMNS,
     CONFIDENCE,
     RESAMPLES,
     Tables,
     auc_table,
+    confirm_table,
     improvement_table,
     iqm_curves,
     method_curves,
@@ -79,6 +84,7 @@ __all__ = [
     "Tables",
     "aggregate",
     "auc_table",
+    "confirm_table",
     "improvement_table",
     "iqm_curves",
     "load_study_frame",
@@ -88,6 +94,7 @@ __all__ = [
     "profile_table",
     "replace_note_section",
     "scored",
+    "stage_frame",
     "study_info",
     "study_tables",
     "table_markdown",
@@ -99,39 +106,68 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``sweeper aggregate``."""
     from sweeper.cli import add_spec_arguments
 
-    add_spec_arguments(parser)
+    add_spec_arguments(parser, many=True)
     parser.add_argument(
-        "--out", metavar="DIR", help="output folder (default: runs/<study>/aggregate)"
+        "--out",
+        metavar="DIR",
+        help="output folder (default: runs/<study>/aggregate; for several specs "
+        "runs/combined/<study>+<study>...)",
     )
     parser.add_argument(
         "--no-dashboard",
         action="store_true",
-        help="do not save the comparison figures and note into the study for optuna-dashboard",
+        help="do not save the comparison figures and note into the study for optuna-dashboard "
+        "(several specs: nothing is saved into the studies)",
     )
 
 
 def run(args: argparse.Namespace) -> int:
-    """``sweeper aggregate``: exit 0, or 2 with a one-line message on a bad spec or study."""
+    """``sweeper aggregate``: exit 0, or 2 with a one-line message on a bad spec or study.
+
+    One spec: that study's report. Several: one combined report of normalised scores over
+    the studies (``sweeper.aggregate.combined``), with the first spec's seed.
+    """
+    from sweeper.aggregate.combined import aggregate_studies
+    from sweeper.artifacts import artifact_location
     from sweeper.cli import spec_from_args
 
+    paths = [args.spec] if isinstance(args.spec, str) else args.spec
     try:
-        spec = spec_from_args(args)
-        out = Path(args.out) if args.out else spec.run_dir / "aggregate"
-        from sweeper.artifacts import artifact_location
-
-        result = aggregate(
-            spec.storage_url,
-            spec.study,
-            out,
-            seed=spec.seed,
-            dashboard=not args.no_dashboard,
-            artifacts=artifact_location(spec),
-        )
+        specs = [spec_from_args(args, path) for path in paths]
+        if len(specs) == 1:
+            spec = specs[0]
+            out = Path(args.out) if args.out else spec.run_dir / "aggregate"
+            result = aggregate(
+                spec.storage_url,
+                spec.study,
+                out,
+                seed=spec.seed,
+                dashboard=not args.no_dashboard,
+                artifacts=artifact_location(spec),
+            )
+            files = result.files
+        else:
+            out = Path(args.out) if args.out else combined_dir([s.study for s in specs])
+            studies = [(s.storage_url, s.study) for s in specs]
+            result = aggregate_studies(studies, out, seed=specs[0].seed)
+            files = result.files
     except ValueError as e:  # SpecError, StorageError, an unknown or empty study
         print(f"sweeper aggregate: {e}", file=sys.stderr)
         return 2
-    print(f"wrote {len(result.files)} files to {out}; report: {result.report}")
+    print(f"wrote {len(files)} files to {out}; report: {result.report}")
     return 0
+
+
+def combined_dir(studies: list[str]) -> Path:
+    """``runs/combined/<a>+<b>+...``; a long list is shortened to its first name, the count
+    and a hash of all names, so the folder name stays valid."""
+    import hashlib
+
+    name = "+".join(studies)
+    if len(name) > 80:
+        digest = hashlib.sha256("\n".join(studies).encode()).hexdigest()[:8]
+        name = f"{studies[0]}+{len(studies) - 1}-more-{digest}"
+    return Path("runs") / "combined" / name
 
 
 # ---- the whole command ---------------------------------------------------------------
@@ -199,20 +235,27 @@ def aggregate(
     try:
         store = StudyStore.find(storage, study_name)
         alive = store is not None and store.driver_alive()
-        tables = study_tables(frame, driver_alive=alive, seed=seed)
+        search = stage_frame(frame, "search")  # the confirmation stage is reported apart
+        tables = study_tables(search, driver_alive=alive, seed=seed)
+        confirm = confirm_table(frame, driver_alive=alive, seed=seed)
         say(f"computed the tables in {time.perf_counter() - start:.1f} s; writing to {out}")
         files = write_tables(frame, tables, out)
-        figures = draw_figures(frame, tables, out)
+        figures = draw_figures(search, tables, out)
+        text = report_markdown(search, tables, alive)
+        if len(confirm):
+            confirm.to_csv(out / "confirm_table.csv", index=False)
+            files.append(out / "confirm_table.csv")
+            seeds = len(study_info(frame).attrs["confirm"]["seeds"])
+            text += "\n" + confirm_markdown(confirm, seeds)
         report = out / "report.md"
-        text = report_markdown(frame, tables, alive)
         if artifacts is not None:  # final frames per method, the env's view (sweeper.frames)
             from sweeper.frames import report_pictures
 
-            text += report_pictures(frame, storage, artifacts, out)
+            text += report_pictures(search, storage, artifacts, out)
         report.write_text(text, encoding="utf-8")
         if dashboard and store is not None:
             try:
-                save_to_dashboard(storage, frame, tables)
+                save_to_dashboard(storage, search, tables)
                 say("saved the comparison figures and note into the study (optuna-dashboard)")
             except (SQLAlchemyError, optuna.exceptions.StorageInternalError) as e:
                 # e.g. a read-only database: the files are written, say so and go on

@@ -73,15 +73,18 @@ def draw_efficiency(
 PROFILE_SCORES = {"auc": "AUC of success rate", "final_success": "final success rate"}
 
 
-def draw_profiles(profiles: pd.DataFrame, path: Path, title: str) -> Path:
-    """Performance profiles: a panel per score, per method the fraction of trials above tau."""
+def draw_profiles(
+    profiles: pd.DataFrame, path: Path, title: str, labels: dict[str, str] = PROFILE_SCORES
+) -> Path:
+    """Performance profiles: a panel per score (``labels``: score -> axis label), per method
+    the fraction of trials above tau."""
     from matplotlib.figure import Figure
 
     figure = Figure(figsize=(11, 4.6), layout="constrained")
-    grid = figure.subplots(1, len(PROFILE_SCORES), sharey=True)
+    grid = figure.subplots(1, len(labels), sharey=True)
     methods = list(dict.fromkeys(profiles["method"]))
     colours = _method_colours(methods)
-    for axes, (score, label) in zip(grid, PROFILE_SCORES.items(), strict=True):
+    for axes, (score, label) in zip(grid, labels.items(), strict=True):
         for method in methods:
             part = profiles[(profiles["method"] == method) & (profiles["score"] == score)]
             if part.empty:
@@ -92,7 +95,8 @@ def draw_profiles(profiles: pd.DataFrame, path: Path, title: str) -> Path:
                 part["tau"], part["low"], part["high"], color=colours[method], alpha=0.2, lw=0
             )
         axes.set_xlabel(f"{label} threshold tau")
-        axes.set_xlim(0, 1)
+        if len(profiles):
+            axes.set_xlim(profiles["tau"].min(), profiles["tau"].max())
         axes.set_ylim(-0.03, 1.03)
         axes.grid(alpha=0.3)
     grid[0].set_ylabel("fraction of trials above tau")

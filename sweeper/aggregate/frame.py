@@ -14,6 +14,7 @@ if TYPE_CHECKING:
 TRIAL_COLUMNS = (
     "trial",
     "key",
+    "stage",
     "method",
     "config_id",
     "seed",
@@ -52,9 +53,10 @@ def load_study_frame(storage_url: str, study_name: str) -> pd.DataFrame:
     """The study as a tidy frame: one row per (trial, evaluation step).
 
     Columns: ``TRIAL_COLUMNS`` (trial = Optuna trial number, state = Optuna state name,
-    auc = the trial's value), ``step``, one column per reported metric (from the ``curve``
-    user attr; a trial without one falls back to its intermediate values as
-    ``success_rate``), then ``params_<name>`` per hyperparameter. A trial with no
+    auc = the trial's value, stage = ``"search"`` or ``"confirm"``), ``step``, one column
+    per reported metric (from the ``curve`` user attr; a trial without one falls back to
+    its intermediate values as ``success_rate``), then ``params_<name>`` per
+    hyperparameter. A trial with no
     evaluation yet has one row with ``step`` missing. ``study_info(frame).name`` is the
     ``StudyInfo`` (``study_info(frame)``).
 
@@ -154,6 +156,7 @@ def _build_frame(study_name, trials, values, user_attrs, params, intermediate, s
     for trial_id, number, state in trials.sort_values("number").itertuples(index=False):
         attrs = attrs_by_trial.get(trial_id, {})
         row = {c: attrs.get(c) for c in TRIAL_COLUMNS}
+        row["stage"] = attrs.get("stage") or stage_of(attrs.get("key"))
         row.update(trial=int(number), state=str(state), auc=auc.get(trial_id))
         row.update({f"params_{k}": v for k, v in params_by_trial.get(trial_id, {}).items()})
         curve = attrs.get("curve")
@@ -204,6 +207,17 @@ def _build_frame(study_name, trials, values, user_attrs, params, intermediate, s
     frame["counted"] = frame["key"].notna() & (frame["trial"] == latest)
     frame.attrs["study"] = StudyInfo(study_name, study, tuple(metrics), tuple(sorted(searched)))
     return frame
+
+
+def stage_of(key: str | None) -> str:
+    """A key's stage: ``"confirm"`` for ``confirm/...`` keys, else ``"search"`` (trials
+    written before stages were recorded have no ``stage`` attr)."""
+    return "confirm" if key is not None and key.startswith("confirm/") else "search"
+
+
+def stage_frame(frame: pd.DataFrame, stage: str) -> pd.DataFrame:
+    """The rows of one stage (``"search"`` or ``"confirm"``), the study info kept."""
+    return frame[frame["stage"] == stage]
 
 
 def trial_rows(frame: pd.DataFrame) -> pd.DataFrame:

@@ -151,3 +151,44 @@ def report_markdown(frame: pd.DataFrame, tables: Tables, driver_alive: bool) -> 
         "",
     ]
     return "\n".join(lines)
+
+
+def confirm_markdown(confirm: pd.DataFrame, seeds: int) -> str:
+    """The confirmation stage's section: per method the best configuration's search AUC and
+    its AUC on fresh seeds as two numbers, then every chosen configuration."""
+    lines = [
+        "## Confirmation on fresh seeds (against the winner's curse)",
+        "",
+        "The best of many configurations is partly the luckiest, so its search AUC overstates "
+        f"it. `sweeper confirm` re-ran each method's {int(confirm['rank'].max())} best "
+        f"configurations (by search AUC, the mean over their search seeds) on {seeds} fresh "
+        "seeds the search never used; these trials are left out of every statistic above.",
+        "",
+        "| method | best configuration found | its search AUC | how good it is on new seeds: "
+        f"confirm AUC [{CONFIDENCE:.0%} CI] (seeds done) | drop |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    best = confirm[confirm["rank"] == 1]
+    for row in best.to_dict("records"):
+        lines.append(
+            f"| {row['method']} | config {row['config_id']} | {_fmt(row['search_auc'])} "
+            f"| {_interval(row, 'confirm_auc')} ({row['n']} of {row['planned']}) "
+            f"| {_fmt(row['drop'])} |"
+        )
+    lines += [
+        "",
+        "Every confirmed configuration (confirm AUC: the mean over its done fresh seeds, "
+        "its interval a bootstrap over those seeds; drop: search minus confirm AUC):",
+        "",
+        "| method | rank | config | search AUC | confirm AUC [CI] | drop | planned | done "
+        "| running | failed | left |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for row in confirm.to_dict("records"):
+        lines.append(
+            f"| {row['method']} | {row['rank']} | {row['config_id']} | {_fmt(row['search_auc'])} "
+            f"| {_interval(row, 'confirm_auc')} | {_fmt(row['drop'])} | {row['planned']} "
+            f"| {row['done']} | {row['running']} | {row['failed']} | {row['left']} |"
+        )
+    lines += ["", "Data: `confirm_table.csv`.", ""]
+    return "\n".join(lines)

@@ -7,7 +7,7 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from sweeper.aggregate.frame import methods_of, scored, study_info, trial_rows
+from sweeper.aggregate.frame import methods_of, scored, stage_frame, study_info, trial_rows
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -243,16 +243,21 @@ def profile_table(frame: pd.DataFrame, *, seed: int = 0) -> pd.DataFrame:
 
 
 def profile_frame(
-    scores: dict[str, dict[str, Any]], methods: list[str], *, seed: int = 0, strata=None
+    scores: dict[str, dict[str, Any]],
+    methods: list[str],
+    *,
+    seed: int = 0,
+    strata=None,
+    taus: tuple[float, ...] = TAUS,
 ) -> pd.DataFrame:
     """``profile_table``'s rows from ``scores[score][method]`` (arrays of scores), resampled
-    within ``strata[score][method]`` (stratum labels) when given."""
+    within ``strata[score][method]`` (stratum labels) when given, at thresholds ``taus``."""
     import numpy as np
     import pandas as pd
 
     from sweeper.stats import Group, profile_statistic, stratified_bootstrap
 
-    taus = np.asarray(TAUS)
+    taus = np.asarray(taus)
     parts = []
     for score, samples in scores.items():
         groups = {
@@ -302,3 +307,75 @@ def study_tables(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 
         table=auc_table(frame, driver_alive=driver_alive, seed=seed),
         improvement=improvement_table(frame, seed=seed),
     )
+
+
+CONFIRM_COLUMNS = (
+    "method",
+    "rank",
+    "config_id",
+    "search_auc",
+    "confirm_auc",
+    "confirm_auc_low",
+    "confirm_auc_high",
+    "drop",
+    "n",
+    "planned",
+    "done",
+    "running",
+    "failed",
+    "left",
+)
+
+
+def confirm_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0):
+    """The confirmation stage (``sweeper confirm``), apart from the search: per method and
+    chosen configuration (``rank`` 1 = best search AUC), ``search_auc`` (the mean over its
+    search seeds it was chosen on), ``confirm_auc`` (the mean over its done fresh seeds,
+    with a 95 % bootstrap interval over those seeds), ``drop`` (search minus confirm AUC:
+    the winner's curse), ``n`` done fresh seeds, and the stage's ledger per configuration.
+    Empty when the study has no confirmation stage (study attr ``confirm``)."""
+    import numpy as np
+    import pandas as pd
+
+    from sweeper.plan import confirm_key
+    from sweeper.stats import mean, stratified_bootstrap
+    from sweeper.storage import key_status
+
+    chosen = study_info(frame).attrs.get("confirm")
+    if not chosen:
+        return pd.DataFrame(columns=CONFIRM_COLUMNS)
+    confirm = stage_frame(frame, "confirm")
+    trials = trial_rows(confirm)
+    current = trials[trials["counted"]]
+    by_key = dict(
+        zip(current["key"], zip(current["state"], current["outcome"], strict=True), strict=True)
+    )
+    done = trial_rows(scored(confirm))
+    samples = {
+        f"{m}/{c}": g["auc"].to_numpy() for (m, c), g in done.groupby(["method", "config_id"])
+    }
+    intervals = stratified_bootstrap(
+        mean, samples, reps=RESAMPLES, seed=seed, confidence=CONFIDENCE
+    )
+    rows = []
+    for method in methods_of(frame):
+        for rank, config_id in enumerate(chosen["configs"].get(method, []), start=1):
+            row: dict[str, Any] = {"method": method, "rank": rank, "config_id": int(config_id)}
+            row["search_auc"] = float(chosen["search_auc"][method][str(config_id)])
+            keys = [confirm_key(method, int(config_id), s) for s in chosen["seeds"]]
+            row.update(dict.fromkeys(("done", "running", "failed", "left"), 0), planned=len(keys))
+            for key in keys:
+                row[key_status(*by_key.get(key, (None, None)), driver_alive)] += 1
+            interval = intervals.get(f"{method}/{config_id}")
+            row["n"] = len(samples.get(f"{method}/{config_id}", ()))
+            if interval is None:
+                row.update(confirm_auc=np.nan, confirm_auc_low=np.nan, confirm_auc_high=np.nan)
+            else:
+                row.update(
+                    confirm_auc=float(interval.point),
+                    confirm_auc_low=float(interval.low),
+                    confirm_auc_high=float(interval.high),
+                )
+            row["drop"] = row["search_auc"] - row["confirm_auc"]
+            rows.append(row)
+    return pd.DataFrame(rows, columns=CONFIRM_COLUMNS)
