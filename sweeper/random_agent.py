@@ -32,7 +32,7 @@ def measure_random_agent(spec: StudySpec) -> dict[str, Any]:
     options = dict(spec.env.options)
     if spec.env.image_size is not None:
         options["image_size"] = spec.env.image_size
-    env = make_env(spec.env.name, **options)
+    env = make_env(spec.env.name, obs_mode="state", **options)  # same dynamics, no rendering
     try:
         rows = random_exploration(env, spec.random_episodes, seed=spec.seed, progress=False)
     finally:
