@@ -5,16 +5,65 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import psycopg
 import pytest
+import yaml
+
+from agent.config import SACConfig, TrialConfig
 
 ROOT = Path(__file__).resolve().parent.parent
 CI_SPEC = ROOT / "studies" / "ci.yaml"
 PG_ADMIN = "host=127.0.0.1 port=5432 dbname=test user=postgres"
+#: a SAC small enough that a trial of a few hundred steps takes seconds
+TINY_SAC = SACConfig(hidden_sizes=(16, 16), batch_size=16, updates_per_step=1, feature_dim=8,
+                     num_filters=8)  # fmt: skip
+
+
+def tiny(**changes: Any) -> TrialConfig:
+    """A point_reach trial of 200 steps at 32x32 with ``TINY_SAC``, ``changes`` on top."""
+    base = dict(
+        env="point_reach",
+        image_size=32,
+        sac=TINY_SAC,
+        total_steps=200,
+        seed_steps=50,
+        eval_every=100,
+        eval_episodes=2,
+        device="cpu",
+    )
+    return TrialConfig(**{**base, **changes})
+
+
+def write_ci_spec(path: Path, **changes: Any) -> Path:
+    """studies/ci.yaml with top-level fields replaced (``execution`` and ``budget`` merged
+    into the CI spec's own), written to ``path``."""
+    data = yaml.safe_load(CI_SPEC.read_text())
+    for name in ("execution", "budget"):
+        data[name] = {**data[name], **changes.pop(name, {})}
+    data.update(changes)
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def wait_until(
+    condition: Callable[[], Any], timeout: float, what: str, interval: float = 0.05
+) -> Any:
+    """Poll ``condition`` until it returns something true, and return that; an
+    AssertionError naming ``what`` after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 @dataclass(frozen=True)

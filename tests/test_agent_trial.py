@@ -8,28 +8,12 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import tiny
 
 import agent
-from agent.config import SACConfig, TrialConfig
+from agent.config import TrialConfig
 from agent.envs import ENV_NAMES
 from agent.metrics import normalized_auc
-
-TINY_SAC = SACConfig(hidden_sizes=(16, 16), batch_size=16, updates_per_step=1, feature_dim=8,
-                     num_filters=8)  # fmt: skip
-
-
-def tiny(**kwargs) -> TrialConfig:
-    base = dict(
-        env="point_reach",
-        image_size=32,
-        sac=TINY_SAC,
-        total_steps=200,
-        seed_steps=50,
-        eval_every=100,
-        eval_episodes=2,
-        device="cpu",
-    )
-    return TrialConfig(**{**base, **kwargs})
 
 
 class Recorder:

@@ -18,6 +18,7 @@ import optuna
 import pytest
 import ray
 import yaml
+from conftest import CI_SPEC, ROOT
 from optuna.artifacts import get_all_artifact_meta
 from optuna.trial import TrialState
 
@@ -29,8 +30,6 @@ from sweeper.launch import launch, prepare
 from sweeper.spec import SpecError, load_spec, parse_spec
 from sweeper.storage import open_storage
 
-ROOT = Path(__file__).resolve().parent.parent
-CI_SPEC = ROOT / "studies" / "ci.yaml"
 OPENER = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # this machine only
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake train below

@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import sys
 import zlib
-from pathlib import Path
 
 import numpy as np
 import optuna
 import pandas as pd
 import pytest
 import ray
-import yaml
+from conftest import CI_SPEC, write_ci_spec
 from optuna.trial import TrialState
 
 from agent.config import TrialResult
@@ -24,8 +23,6 @@ from sweeper.launch import launch, prepare
 from sweeper.plan import build_plan, confirm_plan, fresh_seeds
 from sweeper.storage import open_storage
 
-ROOT = Path(__file__).resolve().parent.parent
-CI_SPEC = ROOT / "studies" / "ci.yaml"
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake trains below
 
@@ -35,13 +32,6 @@ def local_ray():
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
-
-
-def write_spec(path: Path, **changes) -> Path:
-    data = yaml.safe_load(CI_SPEC.read_text())
-    data.update(changes)
-    path.write_text(yaml.safe_dump(data))
-    return path
 
 
 def by_config(config, report=None):
@@ -82,7 +72,7 @@ def test_confirm_plan_keys_seeds_and_checkpoints():
 
 def test_confirm_reruns_the_top_k_on_fresh_seeds_and_is_reported_apart(tmp_path, capsys):
     url = f"sqlite:///{tmp_path / 'study.db'}"
-    path = write_spec(tmp_path / "ci.yaml", storage=url, trials_per_method=3, seeds=[0, 1])
+    path = write_ci_spec(tmp_path / "ci.yaml", storage=url, trials_per_method=3, seeds=[0, 1])
     spec_path = str(path)
     assert cli.main(["confirm", spec_path, "--top-k", "2", "--seeds", "2"]) == 2
     assert "launch the study first" in capsys.readouterr().err
@@ -157,7 +147,7 @@ def fail_pixel(config, report=None):
 
 def test_confirm_refuses_an_unfinished_search_and_writes_nothing(tmp_path, capsys):
     url = f"sqlite:///{tmp_path / 'study.db'}"
-    spec_path = str(write_spec(tmp_path / "ci.yaml", storage=url))
+    spec_path = str(write_ci_spec(tmp_path / "ci.yaml", storage=url))
     spec, plan = prepare(spec_path)
     assert launch(spec, plan, train=fail_pixel) == 1
     before = trials_of(url)

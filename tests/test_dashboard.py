@@ -10,14 +10,13 @@ import subprocess
 import sys
 import time
 import urllib.request
-from pathlib import Path
 
 import optuna
 import pytest
+from conftest import ROOT
 
 from sweeper import cli
 
-ROOT = Path(__file__).resolve().parent.parent
 #: no proxy: the dashboard is on this machine
 OPENER = urllib.request.build_opener(urllib.request.ProxyHandler({}))
 

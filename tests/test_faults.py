@@ -18,15 +18,13 @@ import pytest
 import ray
 import sqlalchemy
 import torch
-import yaml
+from conftest import wait_until, write_ci_spec
 from optuna.trial import TrialState
 
 from agent import train
 from sweeper.launch import launch, prepare
 from sweeper.storage import open_storage
 
-ROOT = Path(__file__).resolve().parent.parent
-CI_SPEC = ROOT / "studies" / "ci.yaml"
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake trains below
 
@@ -40,16 +38,6 @@ def ray_address():
     ray.shutdown()
 
 
-def write_spec(path: Path, **changes) -> Path:
-    """studies/ci.yaml with top-level fields replaced (``execution`` and ``budget`` merged)."""
-    data = yaml.safe_load(CI_SPEC.read_text())
-    for name in ("execution", "budget"):
-        data[name] = {**data[name], **changes.pop(name, {})}
-    data.update(changes)
-    path.write_text(yaml.safe_dump(data))
-    return path
-
-
 def trials_of(url: str, name: str) -> list[optuna.trial.FrozenTrial]:
     """The study's trials, or [] while the driver has not created it yet."""
     try:
@@ -60,16 +48,6 @@ def trials_of(url: str, name: str) -> list[optuna.trial.FrozenTrial]:
             storage.engine.dispose()
     except (KeyError, sqlalchemy.exc.SQLAlchemyError, optuna.exceptions.StorageInternalError):
         return []
-
-
-def wait_for(condition, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 def check_exact_budget(trials, keys: list[str]) -> dict[str, optuna.trial.FrozenTrial]:
@@ -85,7 +63,7 @@ def check_exact_budget(trials, keys: list[str]) -> dict[str, optuna.trial.Frozen
 @pytest.mark.slow
 def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path, ray_address):
     url = f"sqlite:///{tmp_path / 'study.db'}"
-    spec_path = write_spec(
+    spec_path = write_ci_spec(
         tmp_path / "spec.yaml",
         study="faults",
         methods={"pixel": {}},
@@ -112,7 +90,7 @@ def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path, ray_ad
                 return None
             return trial.user_attrs.get("worker")
 
-        worker = wait_for(running_worker, 240, "a checkpoint of the victim trial")
+        worker = wait_until(running_worker, 240, "a checkpoint of the victim trial")
         os.kill(worker["pid"], signal.SIGKILL)
     finally:
         driver.join(timeout=300)
@@ -159,7 +137,7 @@ def kill_group(process: subprocess.Popen, sig: int) -> None:
 @pytest.mark.slow
 def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, ray_address):
     url = f"sqlite:///{tmp_path / 'study.db'}"
-    spec = write_spec(
+    spec = write_ci_spec(
         tmp_path / "spec.yaml",
         study="driver",
         trials_per_method=2,
@@ -181,7 +159,7 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, ray_
     # 1. SIGKILL the driver after a trial ends, while others run (Ray then kills its actors).
     first = start_driver(spec, ray_address, log)
     try:
-        wait_for(done_and_running, 240, "a complete trial and a running one")
+        wait_until(done_and_running, 240, "a complete trial and a running one")
         first.send_signal(signal.SIGKILL)
         first.wait(timeout=30)
     finally:
@@ -202,7 +180,7 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, ray_
                 if t.state == TrialState.RUNNING and t.number not in stale
             ]
 
-        wait_for(running_now, 240, "a trial running under the second driver")
+        wait_until(running_now, 240, "a trial running under the second driver")
         kill_group(second, signal.SIGINT)  # as a terminal does: the whole group
         assert second.wait(timeout=120) == 130, log.read_text()
     finally:
@@ -273,7 +251,7 @@ def test_two_launches_released_together_run_the_budget_once(
         if backend == "sqlite"
         else request.getfixturevalue("pg_url")
     )
-    spec = write_spec(
+    spec = write_ci_spec(
         tmp_path / "spec.yaml",
         study="race",
         trials_per_method=2,
@@ -326,7 +304,7 @@ def test_a_stopped_worker_is_noticed_and_its_trial_retried(tmp_path, ray_address
     """A worker that stops answering (SIGSTOP: a frozen process or node) is treated as
     dead after execution.stall_timeout: its trial re-runs from its checkpoint, exactly once."""
     url = f"sqlite:///{tmp_path / 'study.db'}"
-    spec_path = write_spec(
+    spec_path = write_ci_spec(
         tmp_path / "spec.yaml",
         study="stall",
         seeds=[0, 1],
@@ -350,7 +328,7 @@ def test_a_stopped_worker_is_noticed_and_its_trial_retried(tmp_path, ray_address
                 return None
             return trial.user_attrs.get("worker")
 
-        stopped = wait_for(reporting_worker, 120, "a report of the victim trial")["pid"]
+        stopped = wait_until(reporting_worker, 120, "a report of the victim trial")["pid"]
         os.kill(stopped, signal.SIGSTOP)
         driver.join(timeout=90)
     finally:
@@ -409,7 +387,7 @@ def test_confirm_stage_ledger_is_exact_under_a_worker_kill_and_a_driver_relaunch
     its checkpoint in the same trial; a killed driver's trials are re-run by the next
     `sweeper confirm`; every confirm key is COMPLETE exactly once, the search untouched."""
     url = f"sqlite:///{tmp_path / 'study.db'}"
-    spec = write_spec(
+    spec = write_ci_spec(
         tmp_path / "spec.yaml",
         study="confirm",
         trials_per_method=3,
@@ -449,7 +427,7 @@ def test_confirm_stage_ledger_is_exact_under_a_worker_kill_and_a_driver_relaunch
                     return trial.user_attrs["key"], trial.user_attrs["worker"]["pid"]
             return None
 
-        victim, pid = wait_for(checkpointed_worker, 120, "a confirm trial's checkpoint")
+        victim, pid = wait_until(checkpointed_worker, 120, "a confirm trial's checkpoint")
         os.kill(pid, signal.SIGKILL)
 
         # 2. once the victim is done (re-run in its trial), SIGKILL the driver mid-stage
@@ -461,7 +439,7 @@ def test_confirm_stage_ledger_is_exact_under_a_worker_kill_and_a_driver_relaunch
             ]
             return done and done[0].state == TrialState.COMPLETE and running
 
-        wait_for(victim_done_and_another_running, 120, "the victim done, another running")
+        wait_until(victim_done_and_another_running, 120, "the victim done, another running")
         kill_group(first, signal.SIGKILL)
         first.wait(timeout=30)
     finally:

@@ -12,6 +12,7 @@ import psycopg
 import pytest
 import ray
 import yaml
+from conftest import CI_SPEC, PG_ADMIN, wait_until, write_ci_spec
 from optuna.trial import TrialState
 
 from agent.config import TrialResult
@@ -20,9 +21,6 @@ from sweeper import cli
 from sweeper.launch import launch, prepare
 from sweeper.storage import StudyStore, open_storage
 
-ROOT = Path(__file__).resolve().parent.parent
-CI_SPEC = ROOT / "studies" / "ci.yaml"
-PG_ADMIN = "host=127.0.0.1 port=5432 dbname=test user=postgres"
 GRID = [0, 100, 200, 300]  # studies/ci.yaml: env_steps 300, eval_every 100
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -35,14 +33,6 @@ def local_ray():
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
-
-
-def write_spec(path: Path, **changes) -> Path:
-    """studies/ci.yaml with top-level fields replaced."""
-    data = yaml.safe_load(CI_SPEC.read_text())
-    data.update(changes)
-    path.write_text(yaml.safe_dump(data))
-    return path
 
 
 def load(url: str, name: str = "ci") -> optuna.Study:
@@ -106,7 +96,7 @@ def test_launch_ci_end_to_end_then_status_and_resume(tmp_path, monkeypatch, caps
 
 def test_the_image_control_and_the_oracle_are_methods_like_any_other(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    spec = write_spec(tmp_path / "controls.yaml", methods={"true_reward": {}, "state": {}})
+    spec = write_ci_spec(tmp_path / "controls.yaml", methods={"true_reward": {}, "state": {}})
     assert cli.main(["launch", str(spec)]) == 0
     trials = load("sqlite:///runs/ci/study.db").get_trials()
     assert sorted(t.user_attrs["key"] for t in trials) == ["state/0/0", "true_reward/0/0"]
@@ -124,7 +114,7 @@ def test_launch_on_postgresql(tmp_path):
         connection.execute(f"CREATE SCHEMA {schema}")
     try:
         url = f"postgresql://postgres@127.0.0.1:5432/test?options=-csearch_path%3D{schema}"
-        spec = write_spec(
+        spec = write_ci_spec(
             tmp_path / "ci.yaml", storage=url, checkpoints=str(tmp_path / "checkpoints")
         )
         assert cli.main(["launch", str(spec), "--max-concurrent", "1"]) == 0
@@ -147,7 +137,7 @@ def test_launch_on_postgresql(tmp_path):
 )
 def test_bad_input_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys, change, field):
     monkeypatch.chdir(tmp_path)
-    spec = write_spec(tmp_path / "bad.yaml", **change)
+    spec = write_ci_spec(tmp_path / "bad.yaml", **change)
     assert cli.main(["launch", str(spec)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
@@ -214,7 +204,7 @@ def always_succeed(config, report=None):
 
 def test_exception_and_divergence_are_recorded_then_relaunch_reruns_failed(tmp_path, capsys):
     url = f"sqlite:///{tmp_path / 'study.db'}"
-    spec, plan = prepare(str(write_spec(tmp_path / "ci.yaml", storage=url)))
+    spec, plan = prepare(str(write_ci_spec(tmp_path / "ci.yaml", storage=url)))
     assert launch(spec, plan, train=raise_or_diverge) == 1
     trials = {t.user_attrs["key"]: t for t in load(url).get_trials()}
     failed, diverged = trials["pixel/0/0"], trials["linear/0/0"]
@@ -274,7 +264,7 @@ def test_a_new_study_with_the_same_spec_starts_every_trial_from_step_0(tmp_path,
         execution["keep_checkpoints"] = keep
     for studies, database in enumerate(("first.db", "second.db"), start=1):
         url = f"sqlite:///{tmp_path / database}"
-        spec_path = write_spec(
+        spec_path = write_ci_spec(
             tmp_path / "ci.yaml", storage=url, checkpoints=str(root), execution=execution
         )
         assert launch(*prepare(str(spec_path)), train=resume_marker) == 0
@@ -292,7 +282,7 @@ def test_more_torch_threads_than_cpus_is_refused_with_the_fix(tmp_path):
 
     url = f"sqlite:///{tmp_path / 'study.db'}"
     execution = {**yaml.safe_load(CI_SPEC.read_text())["execution"], "threads_per_trial": 2}
-    spec_path = write_spec(tmp_path / "ci.yaml", storage=url, execution=execution)
+    spec_path = write_ci_spec(tmp_path / "ci.yaml", storage=url, execution=execution)
     stream = io.StringIO()
     assert launch(*prepare(str(spec_path)), train=always_succeed, stream=stream) == 2
     message = stream.getvalue().strip()
@@ -421,8 +411,7 @@ def test_pool_counts_only_workers_that_started():
     pool = WorkerPool(3, cpus=1, train=always_succeed)  # the module's Ray has 2 CPUs
     try:
         deadline = time.monotonic() + 60
-        while pool.idle < 2 and time.monotonic() < deadline:
-            time.sleep(0.2)
+        wait_until(lambda: pool.idle >= 2, 60, "2 idle workers", interval=0.2)
         time.sleep(1.0)
         assert pool.idle == 2
         finished, pending = [], ["a", "b", "c"]
@@ -436,11 +425,7 @@ def test_pool_counts_only_workers_that_started():
 
 
 def _wait_idle(pool, count: int, seconds: float = 60) -> None:
-    import time
-
-    deadline = time.monotonic() + seconds
-    while pool.idle < count and time.monotonic() < deadline:
-        time.sleep(0.2)
+    wait_until(lambda: pool.idle >= count, seconds, f"{count} idle workers", interval=0.2)
     assert pool.idle == count
 
 
@@ -499,7 +484,7 @@ def test_the_driver_measures_the_random_agent_once_per_study(tmp_path, monkeypat
     from sweeper import random_agent
 
     url = f"sqlite:///{tmp_path / 'study.db'}"
-    spec, plan = prepare(str(write_spec(tmp_path / "ci.yaml", storage=url, random_episodes=40)))
+    spec, plan = prepare(str(write_ci_spec(tmp_path / "ci.yaml", storage=url, random_episodes=40)))
     assert launch(spec, plan, train=always_succeed) == 0
     measured = load(url).user_attrs["random_agent"]
     assert measured == {**random_agent.measure_random_agent(spec), "seconds": measured["seconds"]}
@@ -515,6 +500,6 @@ def test_the_driver_measures_the_random_agent_once_per_study(tmp_path, monkeypat
     assert load(url).get_trials()[0].datetime_start == first
 
     url = f"sqlite:///{tmp_path / 'none.db'}"
-    spec, plan = prepare(str(write_spec(tmp_path / "none.yaml", storage=url, random_episodes=0)))
+    spec, plan = prepare(str(write_ci_spec(tmp_path / "none.yaml", storage=url, random_episodes=0)))
     assert launch(spec, plan, train=always_succeed) == 0
     assert "random_agent" not in load(url).user_attrs

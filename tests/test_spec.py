@@ -10,13 +10,13 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import ROOT
 
 from agent.config import SACConfig
 from sweeper import cli
 from sweeper.space import METHOD_DEFAULTS, OPTION_ENV_VARS, SAC_DEFAULTS
 from sweeper.spec import SpecError, load_spec, load_yaml, parse_spec
 
-ROOT = Path(__file__).resolve().parents[1]
 VGG_ENV = OPTION_ENV_VARS["vgg", "weights_path"]
 
 BASE = {
@@ -60,7 +60,8 @@ def test_shipped_studies_load(name, vgg_weights):
     assert spec.study == name
     assert spec.env.name in ("point_reach", name)
     if name in ("fetch_reach", "sawyer_door", "fetch_push"):
-        assert set(spec.methods) == {"pixel", "linear", "conv", "vae", "cvae", "vgg"}
+        encoders = {"pixel", "linear", "conv", "vae", "cvae", "vgg"}
+        assert set(spec.methods) == encoders | {"true_reward", "state"}  # and the controls
         assert spec.sac.space() == SAC_DEFAULTS  # thesis appendix A.1
         assert spec.methods["vgg"]["weights_path"] == (str(vgg_weights),)
     if name == "ci":

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import optuna
 import pytest
+from conftest import wait_until
 from optuna.trial import TrialState
 
 from sweeper.storage import (
@@ -130,9 +131,7 @@ def test_sqlite_no_lost_write_with_a_dashboard_reading(sqlite_url, tmp_path):
     )
     try:
         # the reader imports optuna first; write only once it is reading, so they overlap
-        deadline = time.monotonic() + 120
-        while not ready.exists() and reader.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_until(lambda: ready.exists() or reader.poll() is not None, 120, "the reader")
         assert ready.exists(), "the reader process never read the study"
         numbers = []
         for trial_number in range(4):
@@ -378,6 +377,7 @@ def test_sync_creates_5000_trials_in_seconds_on_postgresql(pg_url):
         "key": "vae/249/9",
         "plan_hash": "h",
         "attempts": 0,
+        "stage": "search",
     }
     takeover = subprocess.run(  # even with every heartbeat counted stale
         [sys.executable, "-c", TAKEOVER, pg_url], capture_output=True, text=True, timeout=120

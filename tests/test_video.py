@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import tiny
 
 import agent
 from agent import video
-from agent.config import SACConfig, TrialConfig
 
 
 def blobs(n: int, size: int) -> tuple[list[np.ndarray], np.ndarray]:
@@ -70,22 +70,6 @@ def test_encode_video_refuses_unknown_formats_and_no_frames() -> None:
 
 
 # ---- filming a trial's evaluation episode (agent.train) -----------------------------------
-TINY_SAC = SACConfig(hidden_sizes=(16, 16), batch_size=16, updates_per_step=1, feature_dim=8,
-                     num_filters=8)  # fmt: skip
-
-
-def tiny(**kwargs) -> TrialConfig:
-    base = dict(
-        env="point_reach",
-        image_size=32,
-        sac=TINY_SAC,
-        total_steps=200,
-        seed_steps=50,
-        eval_every=100,
-        eval_episodes=2,
-        device="cpu",
-    )
-    return TrialConfig(**{**base, **kwargs})
 
 
 @pytest.mark.parametrize("method", ["pixel", "state"])
