@@ -138,8 +138,10 @@ def measure_reward_scale(config: TrialConfig, encoder: Any) -> float:
             frames, true_distances, done = [], [], False
             while not done:
                 obs, reward, terminated, truncated, _ = env.step(_uniform_action(env, rng))
-                frames.append(obs.get("image"))
-                true_distances.append(-reward)
+                if encoder is None:
+                    true_distances.append(-reward)
+                else:
+                    frames.append(obs["image"])
                 done = terminated or truncated
             if encoder is None:
                 distances.append(np.asarray(true_distances))
