@@ -109,6 +109,17 @@ def ci_aggregate(ci_study: CIStudy) -> Path:
     return ci_study.workdir / "runs" / "ci" / "aggregate"
 
 
+@pytest.fixture(scope="module")
+def local_ray():
+    """One local Ray for a module, its address returned: in-process drivers (``launch``)
+    use it and leave it running, subprocess drivers join it with ``--address``."""
+    import ray
+
+    context = ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield context.address_info["address"]
+    ray.shutdown()
+
+
 @pytest.fixture
 def pg_url():
     """A fresh PostgreSQL schema on the local server, dropped afterwards."""

@@ -29,15 +29,6 @@ optuna.logging.set_verbosity(optuna.logging.WARNING)
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake trains below
 
 
-@pytest.fixture(scope="module")
-def ray_address():
-    """One local Ray for the module: the in-process driver uses it, subprocess drivers join it
-    with ``--address`` (as drivers on a cluster do), so no test pays for its own Ray start."""
-    context = ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield context.address_info["address"]
-    ray.shutdown()
-
-
 def trials_of(url: str, name: str) -> list[optuna.trial.FrozenTrial]:
     """The study's trials, or [] while the driver has not created it yet."""
     try:
@@ -61,7 +52,7 @@ def check_exact_budget(trials, keys: list[str]) -> dict[str, optuna.trial.Frozen
 
 
 @pytest.mark.slow
-def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path, ray_address):
+def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path, local_ray):
     url = f"sqlite:///{tmp_path / 'study.db'}"
     spec_path = write_ci_spec(
         tmp_path / "spec.yaml",
@@ -135,7 +126,7 @@ def kill_group(process: subprocess.Popen, sig: int) -> None:
 
 
 @pytest.mark.slow
-def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, ray_address):
+def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, local_ray):
     url = f"sqlite:///{tmp_path / 'study.db'}"
     spec = write_ci_spec(
         tmp_path / "spec.yaml",
@@ -157,7 +148,7 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, ray_
         return running and any(t.state == TrialState.COMPLETE for t in trials)
 
     # 1. SIGKILL the driver after a trial ends, while others run (Ray then kills its actors).
-    first = start_driver(spec, ray_address, log)
+    first = start_driver(spec, local_ray, log)
     try:
         wait_until(done_and_running, 240, "a complete trial and a running one")
         first.send_signal(signal.SIGKILL)
@@ -169,7 +160,7 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, ray_
     assert stale  # the killed driver left trials RUNNING
 
     # 2. Relaunch, then Ctrl-C it while trials run: exit 130, in-flight trials interrupted.
-    second = start_driver(spec, ray_address, log)
+    second = start_driver(spec, local_ray, log)
     try:
         # dispatched is enough (the driver interrupts what it has in flight); waiting for
         # the worker's first report as well left too short a window with warm workers
@@ -192,7 +183,7 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, ray_
     assert any("stopped by the user" in t.user_attrs["error"] for t in reaped)  # run 2's Ctrl-C
 
     # 3. Relaunch to the end: finished trials are not re-run, the budget is exact.
-    third = start_driver(spec, ray_address, log)
+    third = start_driver(spec, local_ray, log)
     try:
         assert third.wait(timeout=300) == 0, log.read_text()
     finally:
@@ -242,9 +233,7 @@ sys.exit(launch(spec, plan, train=quick))
 
 @pytest.mark.slow
 @pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
-def test_two_launches_released_together_run_the_budget_once(
-    tmp_path, ray_address, backend, request
-):
+def test_two_launches_released_together_run_the_budget_once(tmp_path, local_ray, backend, request):
     """One launch drives, the other exits 3 (busy) with one line; 4 keys, 4 trials."""
     url = (
         f"sqlite:///{tmp_path / 'study.db'}"
@@ -257,7 +246,7 @@ def test_two_launches_released_together_run_the_budget_once(
         trials_per_method=2,
         storage=url,
         checkpoints=str(tmp_path / "checkpoints"),
-        execution={"address": ray_address},
+        execution={"address": local_ray},
     )
     keys = prepare(str(spec))[1].keys()
     assert len(keys) == 4
@@ -300,7 +289,7 @@ def steady(config, report=None):
 
 
 @pytest.mark.slow
-def test_a_stopped_worker_is_noticed_and_its_trial_retried(tmp_path, ray_address):
+def test_a_stopped_worker_is_noticed_and_its_trial_retried(tmp_path, local_ray):
     """A worker that stops answering (SIGSTOP: a frozen process or node) is treated as
     dead after execution.stall_timeout: its trial re-runs from its checkpoint, exactly once."""
     url = f"sqlite:///{tmp_path / 'study.db'}"
@@ -381,7 +370,7 @@ sys.exit(confirm(spec, plan, 2, 2, train=steady))
 
 @pytest.mark.slow
 def test_confirm_stage_ledger_is_exact_under_a_worker_kill_and_a_driver_relaunch(
-    tmp_path, ray_address
+    tmp_path, local_ray
 ):
     """The confirmation stage has the search's semantics: a killed worker's trial re-runs from
     its checkpoint in the same trial; a killed driver's trials are re-run by the next
@@ -402,7 +391,7 @@ def test_confirm_stage_ledger_is_exact_under_a_worker_kill_and_a_driver_relaunch
 
     def driver(stage: str) -> subprocess.Popen:
         return subprocess.Popen(
-            [sys.executable, "-c", CONFIRMER, str(spec), ray_address, stage],
+            [sys.executable, "-c", CONFIRMER, str(spec), local_ray, stage],
             stdout=log.open("a"),
             stderr=subprocess.STDOUT,
             start_new_session=True,
