@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import selectors
+import signal
 import subprocess
 import sys
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -90,6 +93,37 @@ def ci_study(tmp_path_factory: pytest.TempPathFactory) -> CIStudy:
     )
     assert done.returncode == 0, f"sweeper launch failed:\n{done.stdout}\n{done.stderr[-4000:]}"
     return CIStudy(CI_SPEC, url, workdir)
+
+
+@contextlib.contextmanager
+def running_dashboard(study: CIStudy, timeout: float = 120) -> Iterator[str]:
+    """``sweeper dashboard`` on ``study`` on a free port; yields the page address it prints
+    (``http://127.0.0.1:PORT/dashboard/studies/ID``); on exit SIGTERM must stop it cleanly."""
+    command = [sys.executable, "-m", "sweeper.cli", "dashboard", str(study.spec)]
+    command += ["--storage", study.storage_url, "--port", "0"]
+    process = subprocess.Popen(
+        command,
+        cwd=study.workdir,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        selector = selectors.DefaultSelector()
+        selector.register(process.stdout, selectors.EVENT_READ)
+        ready = wait_until(
+            lambda: selector.select(timeout=1.0) or process.poll() is not None,
+            timeout,
+            "the dashboard's address",
+        )
+        line = process.stdout.readline() if ready and process.poll() is None else ""
+        if not line:
+            pytest.fail(f"no address from `sweeper dashboard`: {process.stderr.read()[-2000:]}")
+        yield line.split()[1]  # "optuna-dashboard: http://127.0.0.1:PORT/dashboard/studies/ID"
+    finally:
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=30) == 0  # SIGTERM stops it cleanly
 
 
 @pytest.fixture(scope="session")

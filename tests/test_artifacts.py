@@ -7,7 +7,6 @@ import io
 import json
 import os
 import signal
-import subprocess
 import sys
 import time
 import urllib.request
@@ -18,7 +17,7 @@ import optuna
 import pytest
 import ray
 import yaml
-from conftest import CI_SPEC, ROOT
+from conftest import CI_SPEC, running_dashboard
 from optuna.artifacts import get_all_artifact_meta
 from optuna.trial import TrialState
 
@@ -122,18 +121,7 @@ def test_ci_study_stores_one_video_per_trial_and_the_dashboard_serves_it(ci_stud
         assert (ci_study.workdir / "artifacts" / meta.artifact_id).is_file()
     storage.engine.dispose()
 
-    command = [sys.executable, "-m", "sweeper.cli", "dashboard", str(ci_study.spec)]
-    command += ["--storage", ci_study.storage_url, "--port", "0"]
-    process = subprocess.Popen(
-        command,
-        cwd=ci_study.workdir,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        page = process.stdout.readline().split()[1]
+    with running_dashboard(ci_study) as page:
         base, study_id = page.split("/dashboard/")[0], int(page.rsplit("/", 1)[1])
         detail = json.loads(get(f"{base}/api/studies/{study_id}"))
         videos = {}
@@ -142,9 +130,6 @@ def test_ci_study_stores_one_video_per_trial_and_the_dashboard_serves_it(ci_stud
             assert artifact["mimetype"].startswith(("video/", "image/"))
             url = f"{base}/artifacts/{study_id}/{served['trial_id']}/{artifact['artifact_id']}"
             videos[served["number"]] = get(url)
-    finally:
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=30) == 0
     assert sorted(videos) == sorted(t.number for t in stored) and len(videos) == 2
     for data in videos.values():
         assert len(data) < 300_000

@@ -3,17 +3,11 @@
 from __future__ import annotations
 
 import json
-import os
-import selectors
-import signal
-import subprocess
-import sys
-import time
 import urllib.request
 
 import optuna
 import pytest
-from conftest import ROOT
+from conftest import running_dashboard
 
 from sweeper import cli
 
@@ -26,42 +20,14 @@ def get_json(url: str) -> dict:
         return json.loads(response.read())
 
 
-def read_line(process: subprocess.Popen, timeout: float) -> str:
-    """The first stdout line of ``process``, or fail after ``timeout`` seconds."""
-    selector = selectors.DefaultSelector()
-    selector.register(process.stdout, selectors.EVENT_READ)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if selector.select(timeout=1.0):
-            return process.stdout.readline()
-        if process.poll() is not None:
-            break
-    pytest.fail(f"no address from `sweeper dashboard`: {process.stderr.read()[-2000:]}")
-
-
 def test_dashboard_shows_trials_curves_and_the_comparison(ci_study, ci_aggregate):
-    command = [sys.executable, "-m", "sweeper.cli", "dashboard", str(ci_study.spec)]
-    command += ["--storage", ci_study.storage_url, "--port", "0"]
-    process = subprocess.Popen(
-        command,
-        cwd=ci_study.workdir,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        line = read_line(process, timeout=120)
-        page = line.split()[1]  # "optuna-dashboard: http://127.0.0.1:PORT/dashboard/studies/ID"
+    with running_dashboard(ci_study) as page:
         assert page.startswith("http://127.0.0.1:")  # bound to localhost by default
         base = page.split("/dashboard/")[0]
         studies = get_json(f"{base}/api/studies")["study_summaries"]
         study_id = next(s["study_id"] for s in studies if s["study_name"] == "ci")
         assert page.endswith(f"/dashboard/studies/{study_id}")
         detail = get_json(f"{base}/api/studies/{study_id}")
-    finally:
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=30) == 0  # SIGTERM stops it cleanly
 
     stored = optuna.load_study(study_name="ci", storage=ci_study.storage_url).get_trials()
     assert len(detail["trials"]) == len(stored) == 2
