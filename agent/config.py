@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any, Literal
 
 
@@ -162,7 +163,15 @@ RUNTIME_FIELDS = (
     "video_steps",
 )
 
-Outcome = Literal["completed", "diverged"]
+
+class Outcome(StrEnum):
+    """How a trial ended; stored by value as the trial's ``outcome`` user attr. A trial
+    returns COMPLETED or DIVERGED; the driver records FAILED and INTERRUPTED."""
+
+    COMPLETED = "completed"
+    DIVERGED = "diverged"
+    FAILED = "failed"
+    INTERRUPTED = "interrupted"
 
 
 @dataclass(frozen=True)
@@ -181,7 +190,7 @@ class TrialResult:
     steps: tuple[int, ...]
     metrics: dict[str, tuple[float, ...]]
     auc: float
-    outcome: Outcome = "completed"
+    outcome: Outcome = Outcome.COMPLETED
     diverged_step: int | None = None
     diverged_loss: str | None = None
     seconds: float = 0.0

@@ -23,9 +23,12 @@ import threading
 import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from enum import StrEnum
 from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from agent.config import Outcome
 
 if TYPE_CHECKING:  # optuna and sqlalchemy are imported where used: `sweeper --help` stays light
     import optuna
@@ -239,20 +242,29 @@ def current_trials(trials: Iterable[FrozenTrial]) -> dict[str, FrozenTrial]:
     return current
 
 
-def key_status(state: str | None, outcome: Any, driver_alive: bool) -> str:
-    """The ledger column of a plan key: "done", "running", "failed" or "left", from its
+class KeyStatus(StrEnum):
+    """The ledger column of a plan key (``Counts`` has one field per member)."""
+
+    DONE = "done"
+    RUNNING = "running"
+    FAILED = "failed"
+    LEFT = "left"
+
+
+def key_status(state: str | None, outcome: Any, driver_alive: bool) -> KeyStatus:
+    """The ledger column of a plan key: done, running, failed or left, from its
     current trial's state name and ``outcome`` attr (``state=None``: no trial yet).
 
     A RUNNING trial counts as running only while a driver is alive; otherwise its driver
     died and the key is left for the next launch, like an interrupted one.
     """
     if state is None or state == "WAITING":
-        return "left"
+        return KeyStatus.LEFT
     if state == "COMPLETE":
-        return "done"
+        return KeyStatus.DONE
     if state == "RUNNING":
-        return "running" if driver_alive else "left"
-    return "left" if outcome == "interrupted" else "failed"
+        return KeyStatus.RUNNING if driver_alive else KeyStatus.LEFT
+    return KeyStatus.LEFT if outcome == Outcome.INTERRUPTED else KeyStatus.FAILED
 
 
 def ledger(
@@ -270,7 +282,7 @@ def ledger(
         outcome = trial.user_attrs.get("outcome") if trial else None
         status = key_status(trial.state.name if trial else None, outcome, driver_alive)
         line[status] += 1
-        line["diverged"] += status == "done" and outcome == "diverged"
+        line["diverged"] += status == KeyStatus.DONE and outcome == Outcome.DIVERGED
     return {method: Counts(**line) for method, line in tally.items()}
 
 
