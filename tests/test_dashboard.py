@@ -49,6 +49,30 @@ def test_dashboard_shows_trials_curves_and_the_comparison(ci_study, ci_aggregate
     note = detail["note"]["body"]
     assert "Method comparison" in note and "| pixel | 1 | 1 |" in note
 
+    # Each trial's method at a glance: its user attrs in the trial table, its curve named
+    # by key in a panel of its method, and a note line linking to the method's trials.
+    assert {s["key"] for s in detail["union_user_attrs"]} >= {"method", "key"}
+    for trial in stored:
+        served = next(t for t in detail["trials"] if t["number"] == trial.number)
+        attrs = {a["key"]: a["value"] for a in served["user_attrs"]}
+        assert attrs["method"] == trial.user_attrs["method"]
+        assert attrs["key"] == trial.user_attrs["key"]
+    panels = figures["sweeper-trials"]
+    titles = [a["text"] for a in panels["layout"]["annotations"]]
+    assert titles == ["pixel", "linear"]
+    for trial in stored:
+        trace = next(
+            t
+            for t in panels["data"]
+            if t["name"] == f"{trial.user_attrs['key']} (trial {trial.number})"
+        )
+        panel = titles.index(trial.user_attrs["method"])
+        assert trace["xaxis"] == ("x" if panel == 0 else f"x{panel + 1}")
+        assert trace["y"] == pytest.approx([trial.intermediate_values[s] for s in trace["x"]])
+        number = trial.number
+        link = f"/dashboard/studies/{study_id}/trials?numbers={number}"
+        assert f"- **{trial.user_attrs['method']}**: trials {number} ([open]({link}))" in note
+
 
 def test_dashboard_bad_input_exits_2(ci_study, tmp_path, capsys):
     missing = f"sqlite:///{tmp_path / 'absent.db'}"

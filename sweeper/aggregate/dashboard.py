@@ -101,6 +101,58 @@ def _profile_figure(go, frame, tables: Tables):
     return figure
 
 
+def _trials_figure(go, frame):
+    """Every counted trial's success rate, a panel per method, each line named by its key:
+    the dashboard's own intermediate-value plot draws all trials in one colour-less tangle."""
+    from plotly.subplots import make_subplots
+
+    methods = methods_of(frame)
+    columns = min(3, len(methods))
+    rows = -(-len(methods) // columns)
+    figure = make_subplots(
+        rows=rows, cols=columns, shared_xaxes=True, shared_yaxes=True, subplot_titles=methods
+    )
+    evaluated = frame[frame["counted"] & frame["step"].notna()]
+    for index, method in enumerate(methods):
+        colour = f"rgba{(*PALETTE[index % len(PALETTE)], 1)}"
+        row, column = divmod(index, columns)
+        for (number, key), part in evaluated[evaluated["method"] == method].groupby(
+            ["trial", "key"]
+        ):
+            figure.add_trace(
+                go.Scatter(
+                    x=part["step"].astype(int).tolist(),
+                    y=part["success_rate"].tolist(),
+                    mode="lines+markers",
+                    name=f"{key} (trial {number})",
+                    legendgroup=method,
+                    line={"color": colour, "width": 1},
+                ),
+                row=row + 1,
+                col=column + 1,
+            )
+    figure.update_yaxes(range=[-0.02, 1.02])
+    figure.update_layout(
+        title="success rate of every trial, by method (hover: the trial's key and number)",
+        showlegend=False,
+    )
+    return figure
+
+
+def trials_by_method(frame, study_id: int) -> str:
+    """A markdown line per method listing its counted trials' numbers, linked to
+    optuna-dashboard's trial list filtered to them (its ``numbers`` query)."""
+    trials = trial_rows(frame[frame["counted"]])
+    lines = []
+    for method in methods_of(frame):
+        numbers = sorted(trials.loc[trials["method"] == method, "trial"].tolist())
+        if numbers:
+            joined = ",".join(map(str, numbers))
+            link = f"/dashboard/studies/{study_id}/trials?numbers={joined}"
+            lines.append(f"- **{method}**: trials {', '.join(map(str, numbers))} ([open]({link}))")
+    return "\n".join(lines)
+
+
 def save_to_dashboard(storage, frame, tables: Tables) -> None:
     """Plotly figures (curves per metric, sample efficiency, profiles, AUC), the objective's
     name and a note section into the study."""
@@ -118,6 +170,8 @@ def save_to_dashboard(storage, frame, tables: Tables) -> None:
         save_plotly_graph_object(study, figure, graph_object_id=f"sweeper-curves-{metric}")
     figure = _profile_figure(go, frame, tables)
     save_plotly_graph_object(study, figure, graph_object_id="sweeper-profiles")
+    figure = _trials_figure(go, frame)
+    save_plotly_graph_object(study, figure, graph_object_id="sweeper-trials")
     table, improvement = tables.table, tables.improvement
     done = table[table["n"] > 0]
     aucs = trial_rows(scored(frame))
@@ -163,13 +217,16 @@ def save_to_dashboard(storage, frame, tables: Tables) -> None:
             table_markdown(table, improvement),
             "",
             DEFINITIONS,
+            "",
+            "### Trials by method",
+            "",
+            trials_by_method(frame, study._study_id),
             NOTE_END,
         ]
     )
     save_note(study, replace_note_section(get_note(study), section))
 
 
-#: matplotlib's default colour cycle (tab10) as RGB, so dashboard and PNG colours agree
 def replace_note_section(note: str, section: str) -> str:
     """``note`` with its sweeper section (between the markers) replaced by ``section``,
     or ``section`` appended; what the user wrote around it is kept."""
