@@ -128,8 +128,9 @@ def _adapters(cls: type) -> dict[str, TypeAdapter]:
 @dataclass(frozen=True)
 class Hyperparameters:
     """Base of a frozen dataclass of ``hparam`` fields: each field is checked against its
-    type and bounds at construction (a ValueError names the field, ``prefix.name``, and the
-    value) and stored as validated (lists become tuples, integers in float fields floats)."""
+    type and bounds at construction (a ValueError names the field, after the class's
+    ``prefix``, and the value) and stored as validated (lists become tuples, integers in
+    float fields floats)."""
 
     def __post_init__(self) -> None:
         prefix = getattr(self, "prefix", "")
@@ -139,9 +140,9 @@ class Hyperparameters:
             except ValidationError as exc:
                 err = exc.errors(include_url=False)[0]
                 where = "".join(f"[{part}]" for part in err["loc"] if isinstance(part, int))
-                raise ValueError(
-                    f"{prefix}{name}{where}: {err['msg']}, got {err['input']!r}"
-                ) from None
+                must = err["msg"].replace("Input should be", "must be", 1)
+                must = must if must.startswith("must be") else f"is invalid: {must}"
+                raise ValueError(f"{prefix}{name}{where} {must}, got {err['input']!r}") from None
             object.__setattr__(self, name, value)
 
 

@@ -300,7 +300,9 @@ def _method_space(name: str, options: Any) -> dict[str, tuple[Any, ...]]:
     if options is None:
         options = {}
     if not isinstance(options, dict):
-        raise _error(f"must be a mapping of options (or {{}} for the defaults), got {options!r}")
+        raise _error(
+            f"must be a mapping of options (or {{}} for the defaults), got {options!r}", at=name
+        )
     model = search_space(method_options(name))
     try:
         return model.model_validate(options).space()
