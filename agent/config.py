@@ -34,7 +34,7 @@ class SACConfig(Hyperparameters):
     """SAC-DrQ hyperparameters: defaults and search choices follow the thesis appendix A.1
     where it fixes them. A bad value raises a ValueError naming ``sac.<field>``."""
 
-    prefix: ClassVar[str] = "sac."
+    prefix: ClassVar[str] = "sac."  # errors name sac.<field>, as a spec does
 
     hidden_sizes: tuple[int, ...] = hparam(
         (256, 256), ge=1, search=((256, 256), (512, 512), (1024, 1024)), help="MLP layers"

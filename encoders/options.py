@@ -18,7 +18,7 @@ import os
 from collections.abc import Mapping
 from dataclasses import MISSING, dataclass
 from types import NoneType, UnionType
-from typing import Annotated, Any, Union, get_args, get_origin, get_type_hints
+from typing import Annotated, Any, ClassVar, NamedTuple, Union, get_args, get_origin, get_type_hints
 
 from pydantic import AfterValidator, Field, Strict, TypeAdapter, ValidationError
 from pydantic_core import PydanticCustomError
@@ -96,11 +96,19 @@ def value_type(annotation: Any, info: Hyperparameter) -> Any:
     return Annotated[(annotation, *marks)]
 
 
-def hyperparameters(cls: type) -> dict[str, tuple[dataclasses.Field, Any, Hyperparameter]]:
-    """Field name -> (dataclass field, resolved annotation, declaration), in field order."""
+class Declared(NamedTuple):
+    """One field of a dataclass of hyperparameters."""
+
+    annotation: Any  # resolved: ``int``, ``tuple[int, ...]``, ``float | None``, ...
+    default: Any  # ``dataclasses.MISSING``: required
+    info: Hyperparameter
+
+
+def hyperparameters(cls: type) -> dict[str, Declared]:
+    """Field name -> its declaration, in field order."""
     hints = get_type_hints(cls)
     return {
-        f.name: (f, hints[f.name], f.metadata.get("hparam", Hyperparameter()))
+        f.name: Declared(hints[f.name], f.default, f.metadata.get("hparam", Hyperparameter()))
         for f in dataclasses.fields(cls)
     }
 
@@ -109,19 +117,29 @@ def default_space(cls: type) -> dict[str, tuple[Any, ...]]:
     """The default search space of ``cls``: each field's declared choices, else its default
     alone (a required field without either is left out)."""
     space = {}
-    for name, (f, _, info) in hyperparameters(cls).items():
-        if info.choices is not None:
-            space[name] = info.choices
-        elif f.default is not MISSING:
-            space[name] = (f.default,)
+    for name, field in hyperparameters(cls).items():
+        if field.info.choices is not None:
+            space[name] = field.info.choices
+        elif field.default is not MISSING:
+            space[name] = (field.default,)
     return space
+
+
+def with_env_fallbacks(cls: type, given: Mapping[str, Any]) -> dict[str, Any]:
+    """``given`` and, for each field of ``cls`` it omits whose environment variable is set,
+    the variable's value."""
+    values = dict(given)
+    for name, field in hyperparameters(cls).items():
+        if name not in values and field.info.env and os.environ.get(field.info.env):
+            values[name] = os.environ[field.info.env]
+    return values
 
 
 @functools.cache
 def _adapters(cls: type) -> dict[str, TypeAdapter]:
     return {
-        name: TypeAdapter(value_type(annotation, info))
-        for name, (_, annotation, info) in hyperparameters(cls).items()
+        name: TypeAdapter(value_type(field.annotation, field.info))
+        for name, field in hyperparameters(cls).items()
     }
 
 
@@ -132,8 +150,10 @@ class Hyperparameters:
     ``prefix``, and the value) and stored as validated (lists become tuples, integers in
     float fields floats)."""
 
+    #: what an error puts before the field's name (``"sac."``)
+    prefix: ClassVar[str] = ""
+
     def __post_init__(self) -> None:
-        prefix = getattr(self, "prefix", "")
         for name, adapter in _adapters(type(self)).items():
             try:
                 value = adapter.validate_python(getattr(self, name))
@@ -142,7 +162,9 @@ class Hyperparameters:
                 where = "".join(f"[{part}]" for part in err["loc"] if isinstance(part, int))
                 must = err["msg"].replace("Input should be", "must be", 1)
                 must = must if must.startswith("must be") else f"is invalid: {must}"
-                raise ValueError(f"{prefix}{name}{where} {must}, got {err['input']!r}") from None
+                raise ValueError(
+                    f"{self.prefix}{name}{where} {must}, got {err['input']!r}"
+                ) from None
             object.__setattr__(self, name, value)
 
 
@@ -154,13 +176,13 @@ def build_options(cls: type[Hyperparameters], given: Mapping[str, Any], name: st
     if unknown:
         valid = ", ".join(fields) or "none"
         raise ValueError(f"encoder {name!r} has no option(s) {unknown}; valid options: {valid}")
-    values = dict(given)
-    for key, (f, _, info) in fields.items():
-        if key not in values and info.env and os.environ.get(info.env):
-            values[key] = os.environ[info.env]
-        if key not in values and f.default is MISSING:
-            hint = f" or set ${info.env}" if info.env else ""
-            raise ValueError(f"encoder {name!r} needs option {key} ({info.help}): give it{hint}")
+    values = with_env_fallbacks(cls, given)
+    for key, field in fields.items():
+        if key not in values and field.default is MISSING:
+            hint = f" or set ${field.info.env}" if field.info.env else ""
+            raise ValueError(
+                f"encoder {name!r} needs option {key} ({field.info.help}): give it{hint}"
+            )
     try:
         return cls(**values)
     except ValueError as exc:

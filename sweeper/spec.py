@@ -47,7 +47,13 @@ from pydantic_core import PydanticCustomError
 
 from agent.config import TRUE_REWARD_METHODS, SACConfig
 from encoders import encoder_names, encoder_options
-from encoders.options import NoOptions, default_space, hyperparameters, value_type
+from encoders.options import (
+    NoOptions,
+    default_space,
+    hyperparameters,
+    value_type,
+    with_env_fallbacks,
+)
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 _URL_RE = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
@@ -253,11 +259,7 @@ class SearchSpace(_Strict):
     def _env_fallbacks(cls, data: Any) -> Any:
         """An omitted field with an environment variable takes its value when set; the value
         is written into the spec, so workers on other machines need not have it set."""
-        if isinstance(data, dict):
-            for name, (_, _, info) in hyperparameters(cls.hyperparameters).items():
-                if name not in data and info.env and os.environ.get(info.env):
-                    data = {**data, name: os.environ[info.env]}
-        return data
+        return with_env_fallbacks(cls.hyperparameters, data) if isinstance(data, dict) else data
 
     def space(self) -> dict[str, tuple[Any, ...]]:
         """Field name -> choices, in the dataclass's field order."""
@@ -272,7 +274,7 @@ def search_space(config: type) -> type[SearchSpace]:
     its default; a field with neither (nor a set environment variable) is required."""
     defaults = default_space(config)
     fields: dict[str, Any] = {}
-    for name, (_, annotation, info) in hyperparameters(config).items():
+    for name, (annotation, _, info) in hyperparameters(config).items():
         item = value_type(annotation, info)
         convert = _as_size_choices if get_origin(annotation) is tuple else _as_choices
         choices = Annotated[tuple[item, ...], BeforeValidator(convert), AfterValidator(_distinct)]
@@ -545,12 +547,13 @@ class StudySpec(_Strict):
         if self.execution.address is not None:
             return self
         for method, space in self.methods.items():
-            for name, (_, _, info) in hyperparameters(method_options(method)).items():
-                for path in space.get(name, ()) if info.file else ():
-                    if not Path(str(path)).is_file():
-                        raise _error(
-                            f"file not found: {path!r} ({info.help})", at=f"methods.{method}.{name}"
-                        )
+            for name, field in hyperparameters(method_options(method)).items():
+                missing = [p for p in space[name] if field.info.file and not Path(p).is_file()]
+                if missing:
+                    raise _error(
+                        f"file not found: {missing[0]!r} ({field.info.help})",
+                        at=f"methods.{method}.{name}",
+                    )
         return self
 
     @property
