@@ -1,6 +1,8 @@
 """Typed, frozen values in and out of one trial: the env, the reward method, SAC, the budget,
 and the result. Numeric fields are checked at construction; a bad value raises a ValueError
 naming its field. Names (env, method) are checked by ``agent.train`` against the registries.
+SAC's hyperparameters are declared with ``encoders.options.hparam`` (type, bounds, default,
+A.1 search choices), from which the sweeper derives its search space.
 """
 
 from __future__ import annotations
@@ -9,7 +11,9 @@ import math
 import numbers
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
+
+from encoders.options import Hyperparameters, hparam
 
 
 def _check(ok: bool, name: str, must: str, value: Any) -> None:
@@ -26,46 +30,26 @@ def _is_number(value: Any) -> bool:
 
 
 @dataclass(frozen=True)
-class SACConfig:
-    """SAC-DrQ hyperparameters; defaults follow the thesis appendix A.1 where it fixes one."""
+class SACConfig(Hyperparameters):
+    """SAC-DrQ hyperparameters: defaults and search choices follow the thesis appendix A.1
+    where it fixes them. A bad value raises a ValueError naming ``sac.<field>``."""
 
-    hidden_sizes: tuple[int, ...] = (256, 256)
-    discount: float = 0.95
-    init_temperature: float = 0.1
-    lr: float = 1e-3
-    actor_update_every: int = 1
-    critic_tau: float = 0.005
-    batch_size: int = 256
-    updates_per_step: int = 2
-    buffer_capacity: int = 1_000_000
-    feature_dim: int = 50  # conv features -> Linear -> LayerNorm -> tanh
-    num_filters: int = 32
-    image_pad: int = 4  # DrQ augmentation: replicate-pad then random crop back
+    prefix: ClassVar[str] = "sac."  # errors name sac.<field>, as a spec does
 
-    def __post_init__(self) -> None:
-        sizes = self.hidden_sizes
-        _check(
-            isinstance(sizes, tuple | list) and len(sizes) > 0 and all(map(_is_int, sizes)),
-            "sac.hidden_sizes",
-            "a non-empty sequence of positive integers",
-            sizes,
-        )
-        _check(all(s > 0 for s in sizes), "sac.hidden_sizes", "positive", sizes)
-        object.__setattr__(self, "hidden_sizes", tuple(sizes))  # lists from YAML/JSON
-        for name in ("discount", "critic_tau"):
-            v = getattr(self, name)
-            _check(_is_number(v) and 0 < v <= 1, f"sac.{name}", "a number in (0, 1]", v)
-        for name in ("init_temperature", "lr"):
-            v = getattr(self, name)
-            _check(_is_number(v) and v > 0, f"sac.{name}", "a positive number", v)
-        for name in ("actor_update_every", "batch_size", "buffer_capacity", "feature_dim"):
-            v = getattr(self, name)
-            _check(_is_int(v) and v >= 1, f"sac.{name}", "an integer >= 1", v)
-        for name in ("updates_per_step", "image_pad"):
-            v = getattr(self, name)
-            _check(_is_int(v) and v >= 0, f"sac.{name}", "an integer >= 0", v)
-        _check(_is_int(self.num_filters) and self.num_filters >= 1, "sac.num_filters",
-               "an integer >= 1", self.num_filters)  # fmt: skip
+    hidden_sizes: tuple[int, ...] = hparam(
+        (256, 256), ge=1, search=((256, 256), (512, 512), (1024, 1024)), help="MLP layers"
+    )
+    discount: float = hparam(0.95, gt=0, le=1)
+    init_temperature: float = hparam(0.1, gt=0, search=(0.1, 1.0))
+    lr: float = hparam(1e-3, gt=0, search=(1e-3, 5e-4, 1e-4))
+    actor_update_every: int = hparam(1, ge=1, search=(1, 2))
+    critic_tau: float = hparam(0.005, gt=0, le=1, search=(0.005, 0.001))
+    batch_size: int = hparam(256, ge=1)
+    updates_per_step: int = hparam(2, ge=1)  # SAC updates per env step after seed_steps
+    buffer_capacity: int = hparam(1_000_000, ge=1)
+    feature_dim: int = hparam(50, ge=1)  # conv features -> Linear -> LayerNorm -> tanh
+    num_filters: int = hparam(32, ge=1)
+    image_pad: int = hparam(4, ge=0)  # DrQ augmentation: replicate-pad then random crop back
 
 
 #: methods that train on the env's true reward instead of an encoder's: the state oracle

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -30,18 +31,23 @@ class RewardEncoder(ABC):
     Attributes:
         name: the registry name ("pixel", "linear", ...).
         dim: D, the size of an encoding.
-        needs_fit: True for learned encoders (``fit`` must run before ``encode``).
+        needs_fit: True for learned encoders (``fit`` must run before ``encode``); they
+            also have ``num_images``, the random-policy frames to fit on (an option).
+        options: the encoder's options (its ``encoders.options`` dataclass).
     """
 
     name: str = ""
     needs_fit: bool = False
 
-    def __init__(self, image_shape: tuple[int, int, int], seed: int, device: str = "cpu"):
+    def __init__(
+        self, image_shape: tuple[int, int, int], seed: int, device: str = "cpu", options: Any = None
+    ):
         if len(image_shape) != 3 or image_shape[2] != 3 or min(image_shape) <= 0:
             raise ValueError(f"image_shape must be (H, W, 3), got {image_shape}")
         self.image_shape = tuple(int(s) for s in image_shape)
         self.seed = int(seed)
         self.device = device
+        self.options = options
 
     @property
     @abstractmethod

@@ -9,7 +9,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from encoders.torch_base import TorchEncoder, check_positive, seeded
+from encoders.options import LatentOptions
+from encoders.torch_base import TorchEncoder, seeded
 
 #: DrQ: four 3x3 convs, strides 2, 1, 1, 1, no padding, ReLU after each
 DRQ_STRIDES = (2, 1, 1, 1)
@@ -49,10 +50,11 @@ class ConvEncoder(TorchEncoder):
         image_shape: tuple[int, int, int],
         seed: int,
         device: str = "cpu",
-        latent_dim: int = 128,
+        options: LatentOptions | None = None,
     ) -> None:
-        super().__init__(image_shape, seed, device)
-        self.latent_dim = int(check_positive("latent_dim", latent_dim, int))
+        options = options or LatentOptions()
+        super().__init__(image_shape, seed, device, options)
+        self.latent_dim = options.latent_dim
         h, w, c = self.image_shape
         flat = self.num_filters * conv_output_size(h) * conv_output_size(w)
         with seeded(self.seed):

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from encoders.torch_base import TorchEncoder, check_positive
+from encoders.options import LatentOptions
+from encoders.torch_base import TorchEncoder
 
 
 class LinearEncoder(TorchEncoder):
@@ -21,10 +22,11 @@ class LinearEncoder(TorchEncoder):
         image_shape: tuple[int, int, int],
         seed: int,
         device: str = "cpu",
-        latent_dim: int = 128,
+        options: LatentOptions | None = None,
     ) -> None:
-        super().__init__(image_shape, seed, device)
-        self.latent_dim = int(check_positive("latent_dim", latent_dim, int))
+        options = options or LatentOptions()
+        super().__init__(image_shape, seed, device, options)
+        self.latent_dim = options.latent_dim
         h, w, c = self.image_shape
         # drawn on the CPU so the projection is the same on every device
         generator = torch.Generator().manual_seed(self.seed)

@@ -8,6 +8,7 @@ from __future__ import annotations
 from abc import abstractmethod
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 import numpy as np
 import torch
@@ -39,17 +40,6 @@ def seeded(seed: int) -> Iterator[None]:
         yield
 
 
-def check_positive(name: str, value: float, kind: type = float) -> float:
-    """Return ``value`` as ``kind`` if it is a positive number, else raise a ValueError."""
-    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-        raise ValueError(f"{name} must be a positive {kind.__name__}, got {value!r}")
-    if kind is int and int(value) != value:
-        raise ValueError(f"{name} must be a positive int, got {value!r}")
-    if not np.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a positive {kind.__name__}, got {value!r}")
-    return kind(value)
-
-
 def images_to_tensor(images: np.ndarray, device: torch.device) -> torch.Tensor:
     """uint8 [N,H,W,C] -> float32 [N,C,H,W] in [0, 1] on ``device``."""
     x = torch.from_numpy(np.ascontiguousarray(images)).to(device)
@@ -66,8 +56,10 @@ class TorchEncoder(RewardEncoder):
     #: images per forward pass in ``encode`` (bounds memory, not results)
     chunk: int = 256
 
-    def __init__(self, image_shape: tuple[int, int, int], seed: int, device: str = "cpu"):
-        super().__init__(image_shape, seed, device)
+    def __init__(
+        self, image_shape: tuple[int, int, int], seed: int, device: str = "cpu", options: Any = None
+    ):
+        super().__init__(image_shape, seed, device, options)
         self.torch_device = resolve_device(device)
 
     @abstractmethod

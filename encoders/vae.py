@@ -18,9 +18,8 @@ import torch
 from torch import nn
 
 from encoders.base import FitReport
-from encoders.torch_base import TorchEncoder, check_positive, images_to_tensor, seeded
-
-LATENT_DIMS = (8, 16)
+from encoders.options import VAEOptions
+from encoders.torch_base import TorchEncoder, images_to_tensor, seeded
 
 
 class _BetaVAE(TorchEncoder):
@@ -35,22 +34,13 @@ class _BetaVAE(TorchEncoder):
         image_shape: tuple[int, int, int],
         seed: int,
         device: str = "cpu",
-        latent_dim: int = 16,
-        beta: float = 1.0,
-        lr: float = 1e-3,
-        epochs: int = 20,
-        num_images: int = 2000,
-        batch_size: int = 64,
+        options: VAEOptions | None = None,
     ) -> None:
-        super().__init__(image_shape, seed, device)
-        if latent_dim not in LATENT_DIMS or isinstance(latent_dim, bool):
-            raise ValueError(f"latent_dim must be one of {LATENT_DIMS}, got {latent_dim!r}")
-        self.latent_dim = int(latent_dim)
-        self.beta = check_positive("beta", beta)
-        self.lr = check_positive("lr", lr)
-        self.epochs = int(check_positive("epochs", epochs, int))
-        self.num_images = int(check_positive("num_images", num_images, int))
-        self.batch_size = int(check_positive("batch_size", batch_size, int))
+        options = options or VAEOptions()
+        super().__init__(image_shape, seed, device, options)
+        self.latent_dim, self.beta, self.lr = options.latent_dim, options.beta, options.lr
+        self.epochs, self.batch_size = options.epochs, options.batch_size
+        self.num_images = options.num_images
         self.fitted = False
         with seeded(self.seed):
             self.build()

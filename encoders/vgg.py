@@ -9,14 +9,14 @@ variable ``GCRL_VGG16_WEIGHTS`` (used when ``weights_path`` is not given). Only 
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from encoders.torch_base import TorchEncoder, check_positive
+from encoders.options import VGG_WEIGHTS_ENV_VAR, VGGOptions
+from encoders.torch_base import TorchEncoder
 
 #: torchvision's VGG16 "D" configuration: conv widths, "M" = 2x2 max pool
 VGG16_CONFIG = (
@@ -41,12 +41,11 @@ VGG16_CONFIG = (
 )
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-WEIGHTS_ENV_VAR = "GCRL_VGG16_WEIGHTS"
 WHERE_TO_GET = (
     "download torchvision's ImageNet VGG16 weights "
     "(https://download.pytorch.org/models/vgg16-397923af.pth) on a machine with internet "
     f"access, copy the file here and pass its path as the vgg option weights_path "
-    f"(or set {WEIGHTS_ENV_VAR})"
+    f"(or set {VGG_WEIGHTS_ENV_VAR})"
 )
 
 
@@ -114,18 +113,11 @@ class VGGEncoder(TorchEncoder):
         self,
         image_shape: tuple[int, int, int],
         seed: int,
-        device: str = "cpu",
-        weights_path: str | None = None,
-        input_size: int = 224,
+        device: str,
+        options: VGGOptions,
     ) -> None:
-        super().__init__(image_shape, seed, device)
-        self.input_size = int(check_positive("input_size", input_size, int))
-        if self.input_size < 32:
-            raise ValueError(f"input_size must be at least 32, got {input_size}")
-        weights_path = weights_path or os.environ.get(WEIGHTS_ENV_VAR)
-        if not weights_path:
-            raise ValueError(f"vgg needs weights_path: {WHERE_TO_GET}")
-        self.weights_path = str(weights_path)
+        super().__init__(image_shape, seed, device, options)
+        self.input_size, self.weights_path = options.input_size, options.weights_path
         self.net = vgg16_features()
         load_features_state(Path(self.weights_path).expanduser(), self.net)
         self.net.to(self.torch_device)

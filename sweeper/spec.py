@@ -21,12 +21,13 @@ a float field accepts integers.
 from __future__ import annotations
 
 import difflib
+import functools
 import inspect
 import math
 import os
 import re
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, ClassVar, get_origin
 
 import yaml
 from pydantic import (
@@ -38,19 +39,20 @@ from pydantic import (
     PlainValidator,
     Strict,
     ValidationError,
+    create_model,
     field_validator,
     model_validator,
 )
 from pydantic_core import PydanticCustomError
 
-from agent.config import TRUE_REWARD_METHODS
-from sweeper.space import (
-    METHOD_DEFAULTS,
-    OPTION_BOUNDS,
-    OPTION_ENV_VARS,
-    REQUIRED_OPTIONS,
-    SAC_DEFAULTS,
-    Scalar,
+from agent.config import TRUE_REWARD_METHODS, SACConfig
+from encoders import encoder_names, encoder_options
+from encoders.options import (
+    NoOptions,
+    default_space,
+    hyperparameters,
+    value_type,
+    with_env_fallbacks,
 )
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
@@ -178,22 +180,11 @@ def _distinct(choices: tuple[Any, ...]) -> tuple[Any, ...]:
     return choices
 
 
-def _choices(item: Any, convert: Any = _as_choices) -> Any:
-    """A tuple of distinct choices of ``item``; a scalar in YAML means one choice."""
-    return Annotated[tuple[item, ...], BeforeValidator(convert), AfterValidator(_distinct)]
-
-
 PosInt = Annotated[int, Strict(), Field(ge=1)]
 NonNegInt = Annotated[int, Strict(), Field(ge=0)]
 SeedInt = Annotated[int, Strict(), Field(ge=0, le=2**32 - 1)]
 PosFloat = Annotated[float, Strict(), Field(gt=0)]
 NonNegFloat = Annotated[float, Strict(), Field(ge=0)]
-UnitFloat = Annotated[float, Strict(), Field(gt=0, le=1)]
-Sizes = Annotated[tuple[PosInt, ...], Field(min_length=1)]
-SizeChoices = _choices(Sizes, _as_size_choices)
-PosIntChoices = _choices(PosInt)
-NonNegIntChoices = _choices(NonNegInt)
-PosFloatChoices = _choices(PosFloat)
 
 
 def _reward_scale(value: Any) -> str | float:
@@ -217,9 +208,6 @@ def _video_steps(value: Any) -> str | tuple[int, ...]:
     return tuple(sorted(set(steps)))
 
 
-UnitFloatChoices = _choices(UnitFloat)
-
-
 class _Strict(BaseModel):
     """Frozen, no unknown keys (reported with a close name), no NaN/inf."""
 
@@ -233,18 +221,16 @@ class _Strict(BaseModel):
             for key in data:
                 if key not in cls.model_fields:
                     raise _error(
-                        f"unknown field; {_suggest(key, allowed)}allowed: {', '.join(allowed)}",
+                        f"unknown field; {_suggest(key, allowed)}"
+                        f"allowed: {', '.join(allowed) or 'none'}",
                         at=str(key),
                     )
         return data
 
 
-def _check_scalar(value: Any, like: Any, at: str, bounds: tuple[float, bool] | None = None) -> Any:
-    """Validate one option value against the type of ``like`` (a default or a choice).
-
-    ``like`` of ``inspect.Parameter.empty`` or ``None`` accepts any scalar. ``bounds`` is
-    (lower, inclusive) for numbers. Returns the value, with integers widened for floats.
-    """
+def _check_env_option(value: Any, like: Any, at: str) -> None:
+    """Check an env option against the type of its default ``like`` (``None`` or no
+    default: any scalar)."""
     kind = type(like) if isinstance(like, bool | int | float | str) else None
     if kind is bool:
         ok, what = isinstance(value, bool), "true or false"
@@ -253,76 +239,78 @@ def _check_scalar(value: Any, like: Any, at: str, bounds: tuple[float, bool] | N
     elif kind is float:
         ok = isinstance(value, int | float) and not isinstance(value, bool)
         ok, what = ok and math.isfinite(value), "a finite number"
-        value = float(value) if ok else value
     elif kind is str:
         ok, what = isinstance(value, str), "a string"
     else:
         ok, what = isinstance(value, bool | int | float | str), "a string, number or boolean"
-    if ok and bounds is not None and kind in (int, float):
-        low, inclusive = bounds
-        ok = value >= low if inclusive else value > low
-        what = f"{what} {'>=' if inclusive else '>'} {low}"
     if not ok:
         raise _error(f"must be {what}, got {value!r}", at=at)
-    return value
 
 
-def _option_choices(raw: Any, like: Any, at: str, bounds: tuple[float, bool] | None) -> tuple:
-    """A method option: a scalar (fixed) or a non-empty list of distinct choices."""
-    if isinstance(raw, list | tuple):
-        if not raw:
-            raise _error("empty search space: give a value or a non-empty list of choices", at)
-        choices = tuple(_check_scalar(v, like, f"{at}[{i}]", bounds) for i, v in enumerate(raw))
-        if len(set(choices)) != len(choices):
-            raise _error(f"choices must be distinct, got {raw}", at=at)
-        return choices
-    return (_check_scalar(raw, like, at, bounds),)
+class SearchSpace(_Strict):
+    """A search space derived by ``search_space`` from a dataclass of hyperparameters
+    (``encoders.options.hparam`` fields): each field a tuple of distinct choices."""
+
+    #: the dataclass this space was derived from
+    hyperparameters: ClassVar[type] = NoOptions
+
+    @model_validator(mode="before")
+    @classmethod
+    def _env_fallbacks(cls, data: Any) -> Any:
+        """An omitted field with an environment variable takes its value when set; the value
+        is written into the spec, so workers on other machines need not have it set."""
+        return with_env_fallbacks(cls.hyperparameters, data) if isinstance(data, dict) else data
+
+    def space(self) -> dict[str, tuple[Any, ...]]:
+        """Field name -> choices, in the dataclass's field order."""
+        return {name: getattr(self, name) for name in type(self).model_fields}
+
+
+@functools.cache
+def search_space(config: type) -> type[SearchSpace]:
+    """The search-space model of ``config``, a dataclass of ``hparam`` fields: one field per
+    hyperparameter, a value or a non-empty list of distinct choices of the field's type and
+    bounds (``encoders.options.value_type``), defaulting to its declared search choices, else
+    its default; a field with neither (nor a set environment variable) is required."""
+    defaults = default_space(config)
+    fields: dict[str, Any] = {}
+    for name, (annotation, _, info) in hyperparameters(config).items():
+        item = value_type(annotation, info)
+        convert = _as_size_choices if get_origin(annotation) is tuple else _as_choices
+        choices = Annotated[tuple[item, ...], BeforeValidator(convert), AfterValidator(_distinct)]
+        description = info.help + (f" (or set ${info.env})" if info.env else "")
+        fields[name] = (choices, Field(defaults.get(name, ...), description=description or None))
+    model = create_model(f"{config.__name__}Space", __base__=SearchSpace, **fields)
+    model.hyperparameters = config
+    return model
 
 
 def method_names() -> tuple[str, ...]:
     """Methods a spec may name: the encoder registry's names and the true-reward controls
     (``agent.config.TRUE_REWARD_METHODS``: the state oracle and the image control)."""
-    from encoders import encoder_names
-
     return (*encoder_names(), *TRUE_REWARD_METHODS)
 
 
-def _method_space(name: str, options: Any) -> dict[str, tuple[Scalar, ...]]:
-    """The full search space of method ``name``: defaults from ``sweeper.space``, the
-    encoder's own scalar defaults, and the spec's ``options`` on top."""
-    from encoders import encoder_options
+def method_options(name: str) -> type:
+    """The options dataclass of method ``name`` (the true-reward controls have none)."""
+    return NoOptions if name in TRUE_REWARD_METHODS else encoder_options(name)
 
+
+def _method_space(name: str, options: Any) -> dict[str, tuple[Any, ...]]:
+    """The full search space of method ``name``: its declared defaults, the spec's
+    ``options`` on top."""
     if options is None:
         options = {}
     if not isinstance(options, dict):
-        raise _error(f"must be a mapping of options (or {{}} for the defaults), got {options!r}")
-    accepted = {} if name in TRUE_REWARD_METHODS else encoder_options(name)
-    defaults = METHOD_DEFAULTS.get(name, {})
-    for key in options:
-        if key not in accepted:
-            listed = ", ".join(accepted) or "none"
-            raise _error(
-                f"unknown option of method {name!r}; {_suggest(key, list(accepted))}"
-                f"allowed: {listed}",
-                at=f"{name}.{key}",
-            )
-    space: dict[str, tuple[Scalar, ...]] = {}
-    for key, default in accepted.items():
-        like = defaults[key][0] if key in defaults else default
-        at, bounds = f"{name}.{key}", OPTION_BOUNDS.get(key)
-        env_var = OPTION_ENV_VARS.get((name, key), "")
-        if key in options:
-            space[key] = _option_choices(options[key], like, at, bounds)
-        elif key in defaults:
-            space[key] = defaults[key]
-        elif os.environ.get(env_var):
-            space[key] = (os.environ[env_var],)
-        elif default is inspect.Parameter.empty or key in REQUIRED_OPTIONS.get(name, ()):
-            hint = f" or set ${env_var}" if env_var else ""
-            raise _error(f"required option of method {name!r}: give it in the spec{hint}", at)
-        elif isinstance(default, bool | int | float | str):
-            space[key] = (default,)  # recorded as a fixed param
-    return space
+        raise _error(
+            f"must be a mapping of options (or {{}} for the defaults), got {options!r}", at=name
+        )
+    model = search_space(method_options(name))
+    try:
+        return model.model_validate(options).space()
+    except ValidationError as exc:
+        path, message = _format_errors(exc, model)[0]
+        raise _error(message, at=f"{name}.{path}") from None
 
 
 # ---- the spec -------------------------------------------------------------------------------
@@ -381,25 +369,12 @@ class EnvSpec(_Strict):
                     f"{_suggest(key, list(accepted))}allowed: {', '.join(accepted) or 'none'}",
                     at=f"options.{key}",
                 )
-            _check_scalar(value, accepted[key], at=f"options.{key}")
+            _check_env_option(value, accepted[key], at=f"options.{key}")
         return self
 
 
-class SACSpace(_Strict):
-    """The SAC search space (field names of ``agent.config.SACConfig``); defaults: A.1."""
-
-    hidden_sizes: SizeChoices = Field(SAC_DEFAULTS["hidden_sizes"], description="MLP layers")
-    discount: UnitFloatChoices = SAC_DEFAULTS["discount"]
-    init_temperature: PosFloatChoices = SAC_DEFAULTS["init_temperature"]
-    lr: PosFloatChoices = SAC_DEFAULTS["lr"]
-    actor_update_every: PosIntChoices = SAC_DEFAULTS["actor_update_every"]
-    critic_tau: UnitFloatChoices = SAC_DEFAULTS["critic_tau"]
-    batch_size: PosIntChoices = SAC_DEFAULTS["batch_size"]
-    updates_per_step: PosIntChoices = SAC_DEFAULTS["updates_per_step"]
-    buffer_capacity: PosIntChoices = SAC_DEFAULTS["buffer_capacity"]
-    feature_dim: PosIntChoices = SAC_DEFAULTS["feature_dim"]
-    num_filters: PosIntChoices = SAC_DEFAULTS["num_filters"]
-    image_pad: NonNegIntChoices = SAC_DEFAULTS["image_pad"]
+class SACSpace(search_space(SACConfig)):
+    """The SAC search space, derived from ``agent.config.SACConfig``; defaults: A.1."""
 
     @model_validator(mode="after")
     def _batch_fits_buffer(self) -> SACSpace:
@@ -410,10 +385,6 @@ class SACSpace(_Strict):
                 at="batch_size",
             )
         return self
-
-    def space(self) -> dict[str, tuple[Any, ...]]:
-        """Field name -> choices, in ``SACConfig`` order."""
-        return {name: getattr(self, name) for name in type(self).model_fields}
 
 
 class Budget(_Strict):
@@ -573,12 +544,15 @@ class StudySpec(_Strict):
     @model_validator(mode="after")
     def _local_files(self) -> StudySpec:
         """On a local run, files the trials need must exist before anything starts."""
-        if self.execution.address is None:
-            for path in self.methods.get("vgg", {}).get("weights_path", ()):
-                if not Path(str(path)).is_file():
+        if self.execution.address is not None:
+            return self
+        for method, space in self.methods.items():
+            for name, field in hyperparameters(method_options(method)).items():
+                missing = [p for p in space[name] if field.info.file and not Path(p).is_file()]
+                if missing:
                     raise _error(
-                        f"file not found: {path!r} (VGG16 weights in torchvision format)",
-                        at="methods.vgg.weights_path",
+                        f"file not found: {missing[0]!r} ({field.info.help})",
+                        at=f"methods.{method}.{name}",
                     )
         return self
 
@@ -622,9 +596,8 @@ class StudySpec(_Strict):
 # ---- loading -----------------------------------------------------------------------------------
 
 
-def _describe(loc: tuple[Any, ...]) -> str:
-    """The description of the field at ``loc`` (for "missing" errors), if any."""
-    model: Any = StudySpec
+def _describe(model: Any, loc: tuple[Any, ...]) -> str:
+    """The description of the field at ``loc`` of ``model`` (for "missing" errors), if any."""
     info = None
     for part in loc:
         fields = getattr(model, "model_fields", None)
@@ -647,7 +620,8 @@ def _dotted(loc: tuple[Any, ...] | list[Any]) -> str:
     return path
 
 
-def _format_errors(exc: ValidationError) -> list[tuple[str, str]]:
+def _format_errors(exc: ValidationError, model: Any) -> list[tuple[str, str]]:
+    """(dotted path, message) of each error of validating ``model``."""
     errors = []
     for err in exc.errors(include_url=False):
         loc = tuple(err["loc"])
@@ -659,7 +633,7 @@ def _format_errors(exc: ValidationError) -> list[tuple[str, str]]:
                 path = f"{path}{'' if at.startswith('[') or not path else '.'}{at}"
         elif err["type"] == "missing":
             path, message = _dotted(loc), "required field is missing"
-            description = _describe(loc)
+            description = _describe(model, loc)
             if description:
                 message += f"; {description}"
         else:
@@ -680,7 +654,7 @@ def parse_spec(data: Any, source: str = "spec") -> StudySpec:
     try:
         return StudySpec.model_validate(data)
     except ValidationError as exc:
-        errors = _format_errors(exc)
+        errors = _format_errors(exc, StudySpec)
         detail = "; ".join(f"{path}: {message}" for path, message in errors)
         raise SpecError(f"{source}: {detail}", errors) from None
 

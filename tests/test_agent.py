@@ -165,6 +165,8 @@ def test_evaluation_grid_and_metric_names() -> None:
         ({"hidden_sizes": ()}, "sac.hidden_sizes"),
         ({"discount": 1.5}, "sac.discount"),
         ({"batch_size": 2.5}, "sac.batch_size"),
+        ({"updates_per_step": 0}, "sac.updates_per_step"),  # a trial must learn
+        ({"hidden_sizes": (64, 0)}, r"sac.hidden_sizes\[1\]"),
     ],
 )
 def test_bad_sac_config_names_the_field(kwargs: dict, field: str) -> None:

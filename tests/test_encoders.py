@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
 from encoders import encoder_names, encoder_options, latent_reward, make_encoder
 from encoders.conv import conv_output_size, drq_conv_stack
-from encoders.vgg import WEIGHTS_ENV_VAR, vgg16_features
+from encoders.options import VGG_WEIGHTS_ENV_VAR as WEIGHTS_ENV_VAR
+from encoders.vgg import vgg16_features
 
 torch.set_num_threads(1)
 
@@ -45,7 +48,7 @@ def learned_options(name: str) -> dict:
 
 def test_registry_lists_the_six_encoders() -> None:
     assert encoder_names() == ("pixel", "linear", "conv", "vae", "cvae", "vgg")
-    assert encoder_options("vae") == {
+    assert dataclasses.asdict(encoder_options("vae")()) == {
         "latent_dim": 16,
         "beta": 1.0,
         "lr": 1e-3,
@@ -53,23 +56,25 @@ def test_registry_lists_the_six_encoders() -> None:
         "num_images": 2000,
         "batch_size": 64,
     }
-    assert encoder_options("linear") == {"latent_dim": 128}
+    assert dataclasses.asdict(encoder_options("linear")()) == {"latent_dim": 128}
 
 
 @pytest.mark.parametrize("name", ["pixel", "linear", "conv", "vae", "cvae", "vgg"])
-def test_declared_options_match_the_class_signature(name: str) -> None:
-    from encoders.registry import encoder_class, signature_options
+def test_an_encoder_is_built_with_its_declared_options(name: str, vgg_weights) -> None:
+    given = {"weights_path": vgg_weights, "input_size": 64} if name == "vgg" else {}
+    encoder = make_encoder(name, (48, 48, 3), **given)
+    assert encoder.options == encoder_options(name)(**given)
+    for option, value in dataclasses.asdict(encoder.options).items():
+        assert getattr(encoder, option, value) == value, option  # what the encoder reads
 
-    assert encoder_options(name) == signature_options(encoder_class(name))
 
-
-def test_a_registered_encoder_without_declared_options_is_read_from_its_class() -> None:
+def test_a_registered_encoder_without_declared_options_takes_none() -> None:
     from encoders import registry
 
     registry.register("pixel_copy", "encoders.pixel:PixelEncoder")
     try:
         assert "pixel_copy" in encoder_names()
-        assert encoder_options("pixel_copy") == {}
+        assert dataclasses.asdict(encoder_options("pixel_copy")()) == {}
         assert make_encoder("pixel_copy", image_shape=(8, 8, 3)).encode(
             np.zeros((1, 8, 8, 3), np.uint8)
         ).shape == (1, 192)
@@ -212,14 +217,18 @@ def test_bad_names_options_and_inputs_are_clear_errors() -> None:
         make_encoder("cnv", (48, 48, 3))
     with pytest.raises(ValueError, match=r"no option\(s\) \['latent'\].*latent_dim"):
         make_encoder("linear", (48, 48, 3), latent=3)
-    with pytest.raises(ValueError, match=r"latent_dim must be one of \(8, 16\)"):
+    with pytest.raises(ValueError, match=r"latent_dim must be one of \(8, 16\), got 32"):
         make_encoder("vae", (48, 48, 3), latent_dim=32)
-    with pytest.raises(ValueError, match="beta must be a positive"):
+    with pytest.raises(ValueError, match=r"'cvae'.*beta must be greater than 0, got -1\.0"):
         make_encoder("cvae", (48, 48, 3), beta=-1.0)
-    with pytest.raises(ValueError, match="epochs must be a positive int"):
+    with pytest.raises(ValueError, match=r"'cvae'.*epochs must be a valid integer, got 1\.5"):
         make_encoder("cvae", (48, 48, 3), epochs=1.5)
-    with pytest.raises(ValueError, match="latent_dim must be a positive int"):
+    with pytest.raises(
+        ValueError, match=r"'conv'.*latent_dim must be greater than or equal to 1, got 0"
+    ):
         make_encoder("conv", (48, 48, 3), latent_dim=0)
+    with pytest.raises(ValueError, match=r"'vgg'.*input_size must be greater than or equal to 32"):
+        make_encoder("vgg", (48, 48, 3), weights_path="unused.pth", input_size=16)
     with pytest.raises(ValueError, match="device"):
         make_encoder("conv", (48, 48, 3), device="tpu")
     encoder = make_encoder("pixel", (48, 48, 3))

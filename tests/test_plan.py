@@ -8,8 +8,9 @@ from collections import Counter
 import numpy as np
 
 from agent.config import SACConfig, TrialConfig
+from encoders.options import default_space
 from sweeper.plan import build_plan
-from sweeper.space import SAC_DEFAULTS, derive_rng, param_value, sample_configs, space_size
+from sweeper.space import derive_rng, param_value, sample_configs, space_size
 from sweeper.spec import parse_spec
 
 BASE = {
@@ -21,7 +22,7 @@ BASE = {
     "seeds": [3, 1],
     "budget": {"env_steps": 1000, "seed_steps": 100, "eval_every": 500},
 }
-SAC_NAMES = list(SAC_DEFAULTS)
+SAC_NAMES = list(default_space(SACConfig))
 
 
 def plan_of(**changes):
@@ -153,3 +154,9 @@ def test_fixed_params_draw_nothing_and_streams_are_independent():
     draws = [derive_rng(0, s).integers(1 << 30) for s in ("sac", "method:vae", "method:cvae")]
     assert len(set(draws)) == 3
     assert derive_rng(0, "sac").integers(1 << 30) == draws[0]
+
+
+def test_pinned_hash():
+    """The hash covers every trial's config, SAC and method defaults included: a changed
+    default or declaration order would orphan every study already running."""
+    assert plan_of().hash == "13f1b8a9f4f85146d5cdceeae24f6825c2dd3916006690883ac3a5f894de0545"

@@ -13,11 +13,12 @@ import yaml
 from conftest import ROOT
 
 from agent.config import SACConfig
+from encoders.options import VGGOptions, default_space, hyperparameters
 from sweeper import cli
-from sweeper.space import METHOD_DEFAULTS, OPTION_ENV_VARS, SAC_DEFAULTS
 from sweeper.spec import SpecError, load_spec, load_yaml, parse_spec
 
-VGG_ENV = OPTION_ENV_VARS["vgg", "weights_path"]
+SAC_DEFAULTS = default_space(SACConfig)
+VGG_ENV = hyperparameters(VGGOptions)["weights_path"][2].env
 
 BASE = {
     "study": "t",
@@ -102,11 +103,48 @@ def test_defaults_and_properties():
 def test_sac_space_covers_sac_config():
     fields = [f.name for f in dataclasses.fields(SACConfig)]
     assert list(SAC_DEFAULTS) == fields
+    assert SAC_DEFAULTS == {  # thesis appendix A.1, and SACConfig's defaults where A.1 is silent
+        "hidden_sizes": ((256, 256), (512, 512), (1024, 1024)),
+        "discount": (0.95,),
+        "init_temperature": (0.1, 1.0),
+        "lr": (1e-3, 5e-4, 1e-4),
+        "actor_update_every": (1, 2),
+        "critic_tau": (0.005, 0.001),
+        "batch_size": (256,),
+        "updates_per_step": (2,),
+        "buffer_capacity": (1_000_000,),
+        "feature_dim": (50,),
+        "num_filters": (32,),
+        "image_pad": (4,),
+    }
     assert SAC_DEFAULTS["lr"] == (1e-3, 5e-4, 1e-4)
     assert SAC_DEFAULTS["hidden_sizes"] == ((256, 256), (512, 512), (1024, 1024))
     for name in fields:  # the fixed defaults agree with SACConfig's own
         if len(SAC_DEFAULTS[name]) == 1:
             assert SAC_DEFAULTS[name][0] == getattr(SACConfig(), name), name
+
+
+@pytest.mark.parametrize("name", [f.name for f in dataclasses.fields(SACConfig)])
+def test_spec_and_sac_config_accept_the_same_values(name):
+    """One declaration, one rule: a value is a valid SACConfig field iff it is a valid
+    one-choice search space in a spec (updates_per_step=0 was one and not the other)."""
+    if name == "hidden_sizes":
+        values = ((8, 8), (0, 8), (8.0,), (), (True,), ("8",))
+    else:
+        values = (-1, 0, 0.5, 1, 1.5, 2, 2.0, True, "2", float("inf"), float("nan"), None)
+    small_batch = {} if name == "batch_size" else {"batch_size": 1}  # <= any buffer_capacity
+    for value in values:
+        try:
+            SACConfig(**small_batch, **{name: value})
+            config_ok = True
+        except ValueError:
+            config_ok = False
+        try:
+            parse_spec({**copy.deepcopy(BASE), "sac": {**small_batch, name: [value]}})
+            spec_ok = True
+        except SpecError:
+            spec_ok = False
+        assert config_ok == spec_ok, (name, value)
 
 
 def test_round_trip_through_json_dump(vgg_weights):
@@ -135,11 +173,33 @@ def test_true_reward_controls_are_methods_without_options():
         parse_spec(data)
 
 
-def test_method_spaces_merge_defaults_and_encoder_options():
+def test_method_spaces_merge_defaults_and_encoder_options(vgg_weights):
     from encoders import encoder_names, encoder_options
 
     for name in encoder_names():  # every default option is one the encoder accepts
-        assert set(METHOD_DEFAULTS.get(name, {})) <= set(encoder_options(name)), name
+        options = [f.name for f in dataclasses.fields(encoder_options(name))]
+        assert set(default_space(encoder_options(name))) <= set(options), name
+    vae = {
+        "latent_dim": (8, 16),
+        "beta": (1.0, 5.0, 20.0),
+        "lr": (1e-3, 3e-4),
+        "epochs": (10, 30),
+        "num_images": (1000, 5000),
+        "batch_size": (64,),
+    }
+    data = copy.deepcopy(BASE)
+    data["methods"] = {name: {} for name in (*encoder_names(), "state", "true_reward")}
+    assert parse_spec(data).methods == {  # the default spaces, in the options' order
+        "pixel": {},
+        "linear": {"latent_dim": (128, 256)},
+        "conv": {"latent_dim": (128, 256)},
+        "vae": vae,
+        "cvae": vae,
+        "vgg": {"weights_path": (str(vgg_weights),), "input_size": (224,)},
+        "state": {},
+        "true_reward": {},
+    }
+    assert [list(space) for space in parse_spec(data).methods.values()][3] == list(vae)
     data = copy.deepcopy(BASE)
     data["methods"] = {"vae": {"beta": [2, 4.5], "num_images": 300}, "linear": {}}
     spec = parse_spec(data)
@@ -151,7 +211,7 @@ def test_method_spaces_merge_defaults_and_encoder_options():
 
 
 def test_vgg_weights_from_env_var_or_spec(tmp_path, monkeypatch, vgg_weights):
-    from encoders.vgg import WEIGHTS_ENV_VAR
+    from encoders.options import VGG_WEIGHTS_ENV_VAR as WEIGHTS_ENV_VAR
 
     assert VGG_ENV == WEIGHTS_ENV_VAR  # the sweeper reads the variable the encoder reads
     data = copy.deepcopy(BASE)
@@ -258,13 +318,25 @@ BAD_SPECS = [
         "method option type",
         spec_text(_set("methods", {"vae": {"latent_dim": [8, "big"]}})),
         "methods.vae.latent_dim[1]",
-        "an integer",
+        "valid integer, got 'big'",
     ),
     (
         "method option range",
         spec_text(_set("methods", {"vae": {"beta": -1}})),
-        "methods.vae.beta",
-        ">= 0",
+        "methods.vae.beta[0]",
+        "greater than 0, got -1",
+    ),
+    (
+        "method option not allowed",
+        spec_text(_set("methods", {"cvae": {"latent_dim": [8, 32]}})),
+        "methods.cvae.latent_dim[1]",
+        "one of (8, 16), got 32",
+    ),
+    (
+        "no sac updates",
+        spec_text(_set("sac.updates_per_step", 0)),
+        "sac.updates_per_step[0]",
+        "greater than or equal to 1, got 0",
     ),
     (
         "empty method space",
