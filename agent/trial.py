@@ -20,23 +20,18 @@ true-reward methods, and the true distance; ``agent.video``) and handed to
 ``record(filename, bytes)``, when given. Filming reads the env and never its random
 generators, so the curve is the same with or without it.
 
-Checkpoints are written only at episode ends: the next thing the trial does is reset
-the env, so no mid-episode simulator state is needed, only the env's random generator.
-A checkpoint holds the networks, optimisers, replay, counters, the curve so far, and the
-torch and numpy random states; resuming from it gives the same curve on CPU.
-``checkpoint_dir`` is a local directory or an object-store URI (``agent.storage_io``). Each
-checkpoint carries a SHA-256 digest of its contents: a truncated or corrupt file is
-ignored with a warning. Learned encoders are fitted again on resume (deterministic given
-the seed) rather than saved, so no encoder needs a serialisation API.
+Checkpoints (``agent.checkpoint``) are written only at episode ends: the next thing the
+trial does is reset the env, so no mid-episode simulator state is needed, only the env's
+random generator. A checkpoint holds the networks, optimisers, replay, counters, the curve
+so far, and the torch and numpy random states; resuming from it gives the same curve on
+CPU. Learned encoders are fitted again on resume (deterministic given the seed) rather
+than saved, so no encoder needs a serialisation API.
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
-import hashlib
 import time
-import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -44,8 +39,8 @@ import numpy as np
 import torch
 
 import encoders
-from agent import storage_io
-from agent.config import RUNTIME_FIELDS, TRUE_REWARD_METHODS, TrialConfig, TrialResult
+from agent import checkpoint, video
+from agent.config import TRUE_REWARD_METHODS, Outcome, TrialConfig, TrialResult
 from agent.envs import make_env
 from agent.envs.base import EPISODE_STEPS
 from agent.metrics import (
@@ -62,8 +57,6 @@ from encoders.torch_base import resolve_device
 Report = Callable[[int, dict[str, float]], None]
 #: ``record(filename, data)``: a file the trial made (an episode video)
 Record = Callable[[str, bytes], None]
-CHECKPOINT_NAME = "checkpoint.pt"
-CHECKPOINT_FORMAT = 1
 DEFAULT_NUM_IMAGES = 1000
 #: env steps of random policy measured for ``reward_scale="auto"`` (5 episodes, 5 goals)
 SCALE_STEPS = 5 * EPISODE_STEPS
@@ -203,8 +196,6 @@ def episode_video(
 ) -> bytes:
     """The video of a filmed episode; each frame's reward is the one the agent is trained
     on: ``scale`` times the latent reward, or the true reward without an encoder."""
-    from agent import video
-
     distances = np.asarray(episode.distances)
     if encoder is None:
         rewards = -scale * distances
@@ -217,86 +208,6 @@ def episode_video(
         for t, (r, d) in enumerate(zip(rewards, distances, strict=True))
     ]
     return video.encode_video(video.episode_frames(episode.images, episode.goal, captions), fmt)
-
-
-# ---- checkpoint files -------------------------------------------------------------------
-def _digest(obj: Any) -> str:
-    """SHA-256 over every value in a nested checkpoint (tensors by their bytes)."""
-    h = hashlib.sha256()
-
-    def visit(x: Any) -> None:
-        if isinstance(x, torch.Tensor):
-            x = x.detach().cpu().contiguous()
-            h.update(f"T{x.dtype}{tuple(x.shape)}".encode())
-            h.update(x.reshape(-1).view(torch.uint8).numpy())
-        elif isinstance(x, dict):
-            h.update(f"D{len(x)}".encode())
-            for k in sorted(x, key=repr):
-                h.update(repr(k).encode())
-                visit(x[k])
-        elif isinstance(x, list | tuple):
-            h.update(f"L{len(x)}".encode())
-            for v in x:
-                visit(v)
-        else:
-            h.update(repr(x).encode())
-
-    visit(obj)
-    return h.hexdigest()
-
-
-def _to_tensors(obj: Any) -> Any:
-    """numpy arrays -> tensors (no copy), so the file loads with ``weights_only=True``."""
-    if isinstance(obj, np.ndarray):
-        return torch.from_numpy(obj)
-    if isinstance(obj, dict):
-        return {k: _to_tensors(v) for k, v in obj.items()}
-    return obj
-
-
-def save_checkpoint(location: str, state: dict[str, Any]) -> None:
-    """Write ``state`` atomically (``agent.storage_io.write_atomic``) with its digest."""
-    state = _to_tensors(state)
-    state["digest"] = _digest(state)
-    storage_io.write_atomic(location, lambda f: torch.save(state, f))
-
-
-def load_checkpoint(location: str, config: TrialConfig) -> dict[str, Any] | None:
-    """The checkpoint at ``location`` if there is one and it is intact, else None (with a
-    warning if it is corrupt). A checkpoint of another trial config, or of another owner
-    (``config.checkpoint_owner``, e.g. another study with the same spec), is an error:
-    resuming it would mix two trials."""
-    source = storage_io.open_read(location)
-    if source is None:
-        return None
-    try:
-        with source:
-            state = torch.load(source, map_location="cpu", weights_only=True)
-        digest = state.pop("digest")
-        if state.get("format") != CHECKPOINT_FORMAT or digest != _digest(state):
-            raise ValueError("digest or format mismatch")
-    except Exception as exc:
-        warnings.warn(f"ignoring corrupt checkpoint {location}: {exc}", stacklevel=3)
-        return None
-    if state.get("owner") != config.checkpoint_owner:
-        raise ValueError(
-            f"checkpoint_dir {config.checkpoint_dir!r} holds a checkpoint of another study "
-            f"(owner {state.get('owner')!r}, this trial's is {config.checkpoint_owner!r}); "
-            "give each study its own checkpoint_dir"
-        )
-    if state["config"] != _config_key(config):
-        raise ValueError(
-            f"checkpoint_dir {config.checkpoint_dir!r} holds a checkpoint of another trial "
-            "config; give each trial its own checkpoint_dir"
-        )
-    return state
-
-
-def _config_key(config: TrialConfig) -> str:
-    fields = dataclasses.asdict(config)
-    for name in RUNTIME_FIELDS:
-        fields.pop(name)
-    return repr(fields)
 
 
 # ---- the trial ----------------------------------------------------------------------------
@@ -316,158 +227,195 @@ def train(
         contextlib.closing(make_env(config.env, **make)) as env,
         contextlib.closing(make_env(config.env, **make)) as eval_env,
     ):
-        return _run(config, report, record, env, eval_env, device, start)
+        return _Trial(config, env, eval_env, device, report, record, start).run()
 
 
-def _run(
-    config: TrialConfig,
-    report: Report | None,
-    record: Record | None,
-    env: Any,
-    eval_env: Any,
-    device: torch.device,
-    start: float,
-) -> TrialResult:
-    torch.manual_seed(config.seed)
-    rng = np.random.default_rng(_seed(config.seed, 0))  # random actions, replay sampling
-    keys = ("state", "goal_state") if config.method == "state" else ("image", "goal_image")
-    encoder = build_encoder(config, env.image_size, device)
-    scale = measure_reward_scale(config, encoder)
-    env.reset(seed=_seed(config.seed, 1))  # seeds the env's generator; episodes reset() below
-    eval_seeds = [_seed(config.seed, 100 + i) for i in range(config.eval_episodes)]
-    obs_space, goal_space = env.observation_space[keys[0]], env.observation_space[keys[1]]
-    action_dim = env.action_space.shape[0]
+class _Trial:
+    """One trial's parts (envs, encoder, SAC, replay, random generators) and its progress
+    (env step, curve so far, time spent); ``run`` is the training loop."""
 
-    agent = SAC(obs_space.shape, goal_space.shape, action_dim, config.sac, device)
-    replay = ReplayBuffer(
-        capacity=min(config.sac.buffer_capacity, config.total_steps),
-        obs_shape=obs_space.shape,
-        obs_dtype=obs_space.dtype,
-        goal_shape=goal_space.shape,
-        action_dim=action_dim,
-        episode_steps=EPISODE_STEPS,
-    )
-    grid = evaluation_grid(config.total_steps, config.eval_every)
-    grid_set = set(grid)
-    curve: dict[str, list[float]] = {"step": []}
+    def __init__(
+        self,
+        config: TrialConfig,
+        env: Any,
+        eval_env: Any,
+        device: torch.device,
+        report: Report | None,
+        record: Record | None,
+        start: float,
+    ) -> None:
+        self.config, self.env, self.eval_env, self.device = config, env, eval_env, device
+        self.report, self.record = report, record
+        self.start = start  # time.perf_counter() when this run of the trial began
+        torch.manual_seed(config.seed)
+        self.rng = np.random.default_rng(_seed(config.seed, 0))  # random actions, replay sampling
+        keys = ("state", "goal_state") if config.method == "state" else ("image", "goal_image")
+        self.keys = keys  # the observation's and the goal's key in the env's observations
+        self.encoder = build_encoder(config, env.image_size, device)
+        self.scale = measure_reward_scale(config, self.encoder)
+        env.reset(seed=_seed(config.seed, 1))  # seeds the env's generator; episodes reset() later
+        self.eval_seeds = [_seed(config.seed, 100 + i) for i in range(config.eval_episodes)]
+        obs_space, goal_space = env.observation_space[keys[0]], env.observation_space[keys[1]]
+        action_dim = env.action_space.shape[0]
+        self.agent = SAC(obs_space.shape, goal_space.shape, action_dim, config.sac, device)
+        self.replay = ReplayBuffer(
+            capacity=min(config.sac.buffer_capacity, config.total_steps),
+            obs_shape=obs_space.shape,
+            obs_dtype=obs_space.dtype,
+            goal_shape=goal_space.shape,
+            action_dim=action_dim,
+            episode_steps=EPISODE_STEPS,
+        )
+        self.grid = evaluation_grid(config.total_steps, config.eval_every)
+        self.video_steps = set(config.video_steps) if record is not None else set()
+        self.video_format = video.default_format() if self.video_steps else ""
+        self.curve: dict[str, list[float]] = {"step": []}
+        self.step = 0
+        self.resumed_from: int | None = None
+        self.seconds_before = 0.0  # wall time of the runs before the resumed checkpoint
+        self.video_seconds = 0.0
 
-    def record_point(step: int, metrics: dict[str, float]) -> None:
-        curve["step"].append(step)
-        for k, v in metrics.items():
-            curve.setdefault(k, []).append(v)
-        if report is not None:
-            report(step, metrics)
+    def run(self) -> TrialResult:
+        """Resume or evaluate the untrained agent, then train to ``total_steps``, evaluating
+        on the grid and checkpointing at episode ends; a divergence ends the trial."""
+        config, (obs_key, goal_key) = self.config, self.keys
+        self.resume()
+        if self.step == 0:
+            self.evaluate_at(0)
+        grid, last_checkpoint = set(self.grid), self.step
+        done, diverged = True, None
+        try:
+            while self.step < config.total_steps:
+                if done:
+                    obs, goal_latent = self.start_episode()
+                if self.step < config.seed_steps:
+                    action = _uniform_action(self.env, self.rng)
+                else:
+                    action = self.agent.act(obs[obs_key], obs[goal_key], sample=True)
+                obs, reward, terminated, truncated, _ = self.env.step(action)
+                if self.encoder is not None:
+                    latent = self.encoder.encode(obs[obs_key][None])
+                    reward = float(encoders.latent_reward(latent, goal_latent)[0])
+                self.replay.add(action, self.scale * reward, obs[obs_key])
+                self.step += 1
 
-    video_steps = set(config.video_steps) if record is not None else set()
-    video_format = ""
-    if video_steps:
-        from agent.video import default_format
+                if self.step >= config.seed_steps:
+                    self.update_agent()
+                if self.step in grid:
+                    self.evaluate_at(self.step)
+                done = terminated or truncated
+                due = self.step - last_checkpoint >= config.checkpoint_every
+                if done and due and self.step < config.total_steps and config.checkpoint_dir:
+                    self.save_checkpoint()
+                    last_checkpoint = self.step
+        except Diverged as exc:
+            diverged = exc
+            self.fill_diverged()
+        return self.result(diverged)
 
-        video_format = default_format()
-    filmed = {"seconds": 0.0}
+    def start_episode(self) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+        """Reset the training env: its first observation and the goal's latent (None
+        without an encoder)."""
+        obs, _ = self.env.reset()
+        obs_key, goal_key = self.keys
+        self.replay.start_episode(obs[obs_key], obs[goal_key])
+        if self.encoder is None:
+            return obs, None
+        return obs, self.encoder.encode(obs[goal_key][None])
 
-    def evaluation(step: int) -> None:
-        film = Episode() if step in video_steps else None
-        metrics = evaluate(agent, eval_env, eval_seeds, keys, film)
+    def update_agent(self) -> None:
+        """``updates_per_step`` SAC updates; Diverged at the first loss that is not finite."""
+        for _ in range(self.config.sac.updates_per_step):
+            losses = self.agent.update(self.replay.sample(self.config.sac.batch_size, self.rng))
+            for name, loss in losses.items():
+                if not torch.isfinite(loss):
+                    raise Diverged(self.step, name)
+
+    def evaluate_at(self, step: int) -> None:
+        """Evaluate the agent at ``step``, filming the first episode if ``step`` is one of
+        the video steps, and record the point."""
+        film = Episode() if step in self.video_steps else None
+        metrics = evaluate(self.agent, self.eval_env, self.eval_seeds, self.keys, film)
         if film is not None:
-            start_video = time.perf_counter()
-            data = episode_video(film, step, config.method, encoder, scale, video_format)
-            record(f"episode-step{step}.{video_format}", data)
-            filmed["seconds"] += film.seconds + time.perf_counter() - start_video
-        record_point(step, metrics)
+            start = time.perf_counter()
+            data = episode_video(
+                film, step, self.config.method, self.encoder, self.scale, self.video_format
+            )
+            self.record(f"episode-step{step}.{self.video_format}", data)
+            self.video_seconds += film.seconds + time.perf_counter() - start
+        self.add_point(step, metrics)
 
-    # resume: restore everything, re-report the curve so far
-    step, seconds_before, resumed_from = 0, 0.0, None
-    path = (
-        storage_io.join(config.checkpoint_dir, CHECKPOINT_NAME) if config.checkpoint_dir else None
-    )
-    saved = load_checkpoint(path, config) if path is not None else None
-    if saved is not None:
-        step = resumed_from = int(saved["step"])
-        seconds_before = float(saved["seconds"])
-        filmed["seconds"] = float(saved.get("video_seconds", 0.0))
-        agent.load_state_dict(saved["agent"])
-        replay.load_state_dict(saved["replay"])
-        torch.set_rng_state(saved["torch_rng"])
-        if device.type == "cuda":
-            torch.cuda.set_rng_state_all(saved["cuda_rng"])
-        rng.bit_generator.state = saved["numpy_rng"]
-        env.np_random.bit_generator.state = saved["env_rng"]
-        for i, s in enumerate(saved["curve"]["step"]):
-            point = {k: float(v[i]) for k, v in saved["curve"].items() if k != "step"}
-            record_point(int(s), point)
-    last_checkpoint = step
+    def add_point(self, step: int, metrics: dict[str, float]) -> None:
+        """Append an evaluation to the curve and report it."""
+        self.curve["step"].append(step)
+        for k, v in metrics.items():
+            self.curve.setdefault(k, []).append(v)
+        if self.report is not None:
+            self.report(step, metrics)
 
-    def checkpoint() -> None:
-        save_checkpoint(path, {
-            "format": CHECKPOINT_FORMAT,
-            "config": _config_key(config),
-            "owner": config.checkpoint_owner,
-            "step": step,
-            "seconds": seconds_before + time.perf_counter() - start,
-            "video_seconds": filmed["seconds"],
-            "curve": {k: list(v) for k, v in curve.items()},
-            "agent": agent.state_dict(),
-            "replay": replay.state_dict(),
-            "torch_rng": torch.get_rng_state(),
-            "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else [],
-            "numpy_rng": rng.bit_generator.state,
-            "env_rng": env.np_random.bit_generator.state,
-        })  # fmt: skip
+    def fill_diverged(self) -> None:
+        """Give the grid points after the last evaluation the diverged metrics."""
+        metric_keys = tuple(metric_key(name) for name in self.env.metric_names)
+        filler = diverged_metrics(metric_keys)
+        for step in self.grid:
+            if step > self.curve["step"][-1]:
+                self.add_point(step, filler)
 
-    outcome, diverged = "completed", None
-    if step == 0:
-        evaluation(0)
-    episode_done, goal_latent = True, None
-    try:
-        while step < config.total_steps:
-            if episode_done:
-                obs, _ = env.reset()
-                replay.start_episode(obs[keys[0]], obs[keys[1]])
-                if encoder is not None:
-                    goal_latent = encoder.encode(obs[keys[1]][None])
-            if step < config.seed_steps:
-                action = _uniform_action(env, rng)
-            else:
-                action = agent.act(obs[keys[0]], obs[keys[1]], sample=True)
-            obs, reward, terminated, truncated, _ = env.step(action)
-            if encoder is not None:
-                latent = encoder.encode(obs[keys[0]][None])
-                reward = float(encoders.latent_reward(latent, goal_latent)[0])
-            replay.add(action, scale * reward, obs[keys[0]])
-            step += 1
+    def seconds(self) -> float:
+        """Wall time of the trial so far, over every run of it."""
+        return self.seconds_before + time.perf_counter() - self.start
 
-            if step >= config.seed_steps:
-                for _ in range(config.sac.updates_per_step):
-                    losses = agent.update(replay.sample(config.sac.batch_size, rng))
-                    for name, loss in losses.items():
-                        if not torch.isfinite(loss):
-                            raise Diverged(step, name)
+    def save_checkpoint(self) -> None:
+        checkpoint.save(
+            self.config.checkpoint_dir,
+            self.config,
+            checkpoint.Snapshot(
+                step=self.step,
+                seconds=self.seconds(),
+                video_seconds=self.video_seconds,
+                curve={k: list(v) for k, v in self.curve.items()},
+                agent=self.agent.state_dict(),
+                replay=self.replay.state_dict(),
+                torch_rng=torch.get_rng_state(),
+                cuda_rng=torch.cuda.get_rng_state_all() if self.device.type == "cuda" else [],
+                numpy_rng=self.rng.bit_generator.state,
+                env_rng=self.env.np_random.bit_generator.state,
+            ),
+        )
 
-            if step in grid_set:
-                evaluation(step)
-            episode_done = terminated or truncated
-            due = step - last_checkpoint >= config.checkpoint_every and step < config.total_steps
-            if episode_done and due and path is not None:
-                checkpoint()
-                last_checkpoint = step
-    except Diverged as exc:
-        outcome, diverged = "diverged", exc
-        filler = diverged_metrics(tuple(metric_key(name) for name in env.metric_names))
-        for s in grid:
-            if s > curve["step"][-1]:
-                record_point(s, filler)
+    def resume(self) -> None:
+        """Continue from the checkpoint in ``checkpoint_dir``, if there is one: restore
+        everything it holds and report the curve so far again."""
+        if not self.config.checkpoint_dir:
+            return
+        saved = checkpoint.load(self.config.checkpoint_dir, self.config)
+        if saved is None:
+            return
+        self.step = self.resumed_from = saved.step
+        self.seconds_before = saved.seconds
+        self.video_seconds = saved.video_seconds
+        self.agent.load_state_dict(saved.agent)
+        self.replay.load_state_dict(saved.replay)
+        torch.set_rng_state(saved.torch_rng)
+        if self.device.type == "cuda":
+            torch.cuda.set_rng_state_all(saved.cuda_rng)
+        self.rng.bit_generator.state = saved.numpy_rng
+        self.env.np_random.bit_generator.state = saved.env_rng
+        for i, step in enumerate(saved.curve["step"]):
+            point = {k: float(v[i]) for k, v in saved.curve.items() if k != "step"}
+            self.add_point(int(step), point)
 
-    metrics = {k: tuple(v) for k, v in curve.items() if k != "step"}
-    return TrialResult(
-        steps=tuple(curve["step"]),
-        metrics=metrics,
-        auc=normalized_auc(curve["step"], metrics["success_rate"]),
-        outcome=outcome,
-        diverged_step=diverged.step if diverged else None,
-        diverged_loss=diverged.loss if diverged else None,
-        seconds=seconds_before + time.perf_counter() - start,
-        resumed_from=resumed_from,
-        reward_scale=scale,
-        video_seconds=filmed["seconds"],
-    )
+    def result(self, diverged: Diverged | None) -> TrialResult:
+        metrics = {k: tuple(v) for k, v in self.curve.items() if k != "step"}
+        return TrialResult(
+            steps=tuple(self.curve["step"]),
+            metrics=metrics,
+            auc=normalized_auc(self.curve["step"], metrics["success_rate"]),
+            outcome=Outcome.DIVERGED if diverged else Outcome.COMPLETED,
+            diverged_step=diverged.step if diverged else None,
+            diverged_loss=diverged.loss if diverged else None,
+            seconds=self.seconds(),
+            resumed_from=self.resumed_from,
+            reward_scale=self.scale,
+            video_seconds=self.video_seconds,
+        )

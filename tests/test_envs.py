@@ -366,3 +366,26 @@ def test_close_twice_is_fine():
     env.reset(seed=0)
     env.close()
     env.close()
+
+
+def test_a_subclass_missing_a_hook_cannot_be_built():
+    """The base classes' hooks are abstract: a forgotten one fails at construction, not
+    at the first reset or frame."""
+    from agent.envs._mujoco import MujocoGoalImageEnv
+    from agent.envs.base import GoalImageEnv
+    from agent.envs.point_reach import PointReachEnv
+
+    with pytest.raises(TypeError, match="abstract"):
+        GoalImageEnv()
+
+    class NoMetrics(PointReachEnv):
+        _metrics = GoalImageEnv._metrics
+
+    with pytest.raises(TypeError, match="_metrics"):
+        NoMetrics()
+
+    class NoSim(MujocoGoalImageEnv):
+        pass
+
+    with pytest.raises(TypeError, match="_make_sim"):
+        NoSim()

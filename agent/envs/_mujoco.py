@@ -1,5 +1,6 @@
 """What the Fetch and Sawyer envs share: exact snapshots, a mocap drive, cameras, one
-fast offscreen renderer per env, and a base class that renders goal images.
+fast offscreen renderer per env, and a base class that builds the simulator, camera and
+action space and renders goal images.
 
 Import this module only from MuJoCo envs: it imports ``mujoco``.
 """
@@ -8,9 +9,11 @@ from __future__ import annotations
 
 import math
 import numbers
+from abc import abstractmethod
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar
 
+import gymnasium as gym
 import mujoco
 import numpy as np
 
@@ -63,6 +66,7 @@ def sync_mocap(model: mujoco.MjModel, data: mujoco.MjData) -> None:
 def drive_mocap(
     model: mujoco.MjModel,
     data: mujoco.MjData,
+    qpos: np.ndarray,
     point: Callable[[], np.ndarray],
     target: np.ndarray,
     substeps: int,
@@ -71,15 +75,22 @@ def drive_mocap(
     chunks: int = 300,
     tolerance: float = 1e-4,
 ) -> None:
-    """Drive mocap 0 (synced to its body) until the world point ``point()`` sits on ``target``.
+    """Put the robot at rest in posture ``qpos`` with mocap 0 synced to its body, then
+    drive the mocap until the world point ``point()`` sits on ``target``.
 
-    Contacts are off while driving, so the result depends only on the start state and
-    the target, never on objects in the way. The mocap moves in a straight line, at
-    most ``max_move`` per ``substeps`` physics steps (a jump would make the arm swing
-    wildly); each time the arm is at rest there, the mocap's destination is shifted by
-    the remaining error, which removes the weld's sag under gravity. ``after_step``
-    runs after every chunk (e.g. to hold fingers or objects in place).
+    Starting from the same posture each time makes the result a function of ``qpos``
+    and ``target`` alone (a 7-joint arm could otherwise end in other postures), and
+    contacts are off while driving, so objects in the way change nothing. The mocap
+    moves in a straight line, at most ``max_move`` per ``substeps`` physics steps (a
+    jump would make the arm swing wildly); each time the arm is at rest there, the
+    mocap's destination is shifted by the remaining error, which removes the weld's sag
+    under gravity. ``after_step`` runs after every chunk (e.g. to hold fingers or
+    objects in place).
     """
+    data.qpos[:] = qpos
+    data.qvel[:] = 0.0
+    data.qacc_warmstart[:] = 0.0
+    sync_mocap(model, data)
     flags = model.opt.disableflags
     model.opt.disableflags = flags | mujoco.mjtDisableBit.mjDSBL_CONTACT
     try:
@@ -99,6 +110,15 @@ def drive_mocap(
         mujoco.mj_forward(model, data)
     finally:
         model.opt.disableflags = flags
+
+
+def free_joint(model: mujoco.MjModel, name: str) -> tuple[slice, slice]:
+    """The qpos (position, quaternion) and qvel slices of the free joint ``name``."""
+    joint = model.joint(name)
+    return (
+        slice(joint.qposadr[0], joint.qposadr[0] + 7),
+        slice(joint.dofadr[0], joint.dofadr[0] + 6),
+    )
 
 
 def make_camera(model: mujoco.MjModel, camera: str | Mapping[str, Any]) -> mujoco.MjvCamera:
@@ -200,22 +220,42 @@ def check_margin(margin: Any) -> float | None:
 
 
 class MujocoGoalImageEnv(GoalImageEnv):
-    """A GoalImageEnv on one MuJoCo model: the renderer is made on the first frame (never
-    in state mode), and the goal image is rendered by moving the sim to the goal with
+    """A GoalImageEnv on one MuJoCo model, the simulator of another package's env
+    (``_make_sim``) whose stepping, goals and rendering are ours. The action is a 3-D
+    hand displacement in [-1, 1]; the renderer is made on the first frame (never in
+    state mode); the goal image is rendered by moving the sim to the goal with
     ``set_controllable_state``, rendering and restoring the exact state.
 
-    Subclasses set ``model``, ``data``, ``_goal`` and call ``_init_camera`` in ``__init__``.
+    ``camera``: a model camera name or a free-camera spec (``FREE_CAMERA_KEYS``), None
+    for the env's ``default_camera``. ``workspace_margin``: how far (m) the hand may go
+    beyond the positions the task needs (``check_margin``), None for no bounds.
     """
 
     #: body whose geoms (mocap handles) are hidden from the camera
     mocap_body: ClassVar[str] = "mocap"
-    model: mujoco.MjModel
-    data: mujoco.MjData
-    _goal: np.ndarray
+    default_camera: ClassVar[dict[str, Any]]
 
-    def _init_camera(self, camera: str | Mapping[str, Any] | None, default: dict) -> None:
-        self._camera = make_camera(self.model, default if camera is None else camera)
+    def __init__(
+        self,
+        image_size: int | None = None,
+        obs_mode: str = "image",
+        render_mode: str | None = "rgb_array",
+        camera: str | Mapping[str, Any] | None = None,
+        workspace_margin: float | None = 0.05,
+    ) -> None:
+        super().__init__(image_size=image_size, obs_mode=obs_mode, render_mode=render_mode)
+        self.workspace_margin = check_margin(workspace_margin)
+        self._sim = self._make_sim()
+        self.model: mujoco.MjModel = self._sim.model
+        self.data: mujoco.MjData = self._sim.data
+        self._camera = make_camera(self.model, self.default_camera if camera is None else camera)
         self._renderer: SceneRenderer | None = None
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
+        self._goal = np.zeros(len(self.state_names))
+
+    @abstractmethod
+    def _make_sim(self) -> Any:
+        """The simulator env this env drives: it has ``model`` and ``data``."""
 
     def render_image(self) -> np.ndarray:
         if self._renderer is None:

@@ -6,13 +6,14 @@ The true state lives in ``info`` (for evaluation) and behind the *controllable s
 methods (for the encoder diagnostics); it never enters the observation unless the env
 is built with ``obs_mode="state"`` (the state-oracle check of the learner).
 
-Subclasses implement the ``_``-prefixed hooks; this base class owns the episode
+Subclasses implement the abstract methods; this base class owns the episode
 bookkeeping, argument checking and the Gymnasium spaces.
 """
 
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -50,7 +51,7 @@ def check_action(action: Any, space: gym.spaces.Box) -> np.ndarray:
     return np.clip(a, space.low, space.high)
 
 
-class GoalImageEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
+class GoalImageEnv(gym.Env[dict[str, np.ndarray], np.ndarray], ABC):
     """Base class: image observation + goal image, 50-step episodes, true state in info.
 
     Observation (``obs_mode="image"``): ``{"image": uint8 HxWx3, "goal_image": uint8 HxWx3}``.
@@ -105,52 +106,53 @@ class GoalImageEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 
     # ---- hooks for subclasses -------------------------------------------------------
     def _state_dims(self) -> tuple[int, int]:
-        """(dim of the oracle's full task state, dim of the goal)."""
-        raise NotImplementedError
+        """(dim of the oracle's full task state, dim of the goal); override when the task
+        state holds more than the controllable state (fetch_push: gripper and object)."""
+        return len(self.state_names), len(self.state_names)
 
+    @abstractmethod
     def _reset_sim(self, rng: np.random.Generator) -> None:
         """Reset the simulator and sample a new goal with ``rng``."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _apply_action(self, action: np.ndarray) -> None:
         """Advance the simulator by one control step."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _task_state(self) -> np.ndarray:
         """The oracle's full task state (e.g. gripper and object positions)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _metrics(self) -> dict[str, float]:
         """True-state metrics for ``info``: every key of ``metric_names``."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _render_goal_image(self) -> np.ndarray:
         """Render the goal: move the sim to the goal state, render, restore exactly."""
-        raise NotImplementedError
 
+    @abstractmethod
     def render_image(self) -> np.ndarray:
         """The current camera frame, uint8 HxWx3."""
-        raise NotImplementedError
 
+    @abstractmethod
     def controllable_state(self) -> np.ndarray:
         """The current controllable state (same space as ``goal_state``)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def set_controllable_state(self, state: np.ndarray) -> np.ndarray:
         """Move the sim to ``state`` as far as it can; return the state actually reached."""
-        raise NotImplementedError
 
+    @abstractmethod
     def goal_state(self) -> np.ndarray:
         """The current goal in controllable-state space."""
-        raise NotImplementedError
 
+    @abstractmethod
     def set_goal_state(self, goal: np.ndarray) -> None:
         """Replace the episode's goal (and its goal image)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Box (low, high) from which goals and diagnostic states are sampled."""
-        raise NotImplementedError
 
     # ---- Gymnasium API --------------------------------------------------------------
     def reset(

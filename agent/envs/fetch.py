@@ -39,10 +39,9 @@ from __future__ import annotations
 
 import contextlib
 import io
-from collections.abc import Mapping
+from abc import abstractmethod
 from typing import Any, ClassVar
 
-import gymnasium as gym
 import mujoco
 import numpy as np
 
@@ -73,35 +72,20 @@ def _quiet_import() -> contextlib.AbstractContextManager:
 class _FetchImageEnv(mj.MujocoGoalImageEnv):
     """Shared Fetch logic; subclasses choose the gymnasium-robotics class and the goal."""
 
-    metric_names: ClassVar[tuple[str, ...]] = ("is_success", "distance")
     mocap_body: ClassVar[str] = "robot0:mocap"
     default_image_size: ClassVar[int] = 84
-    min_image_size: ClassVar[int] = 32
+    default_camera: ClassVar[dict[str, Any]] = DEFAULT_CAMERA
 
-    def __init__(
-        self,
-        image_size: int | None = None,
-        obs_mode: str = "image",
-        render_mode: str | None = "rgb_array",
-        camera: str | Mapping[str, Any] | None = None,
-        workspace_margin: float | None = 0.05,
-    ) -> None:
-        super().__init__(image_size=image_size, obs_mode=obs_mode, render_mode=render_mode)
-        self.workspace_margin = mj.check_margin(workspace_margin)
-        self._sim = self._make_sim()
-        self.model, self.data = self._sim.model, self._sim.data
-        self._init_camera(camera, DEFAULT_CAMERA)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
-        self._object_qpos = self._object_qvel = slice(0, 0)
-        if self._sim.has_object:
-            joint = self.model.joint("object0:joint")
-            self._object_qpos = slice(joint.qposadr[0], joint.qposadr[0] + 7)
-            self._object_qvel = slice(joint.dofadr[0], joint.dofadr[0] + 6)
-        self._g0 = self._sim.initial_gripper_xpos.copy()
-        self._goal = np.zeros(3)
+    @property
+    def _g0(self) -> np.ndarray:
+        """The gripper position after Fetch's reset, the centre of the goal box."""
+        return self._sim.initial_gripper_xpos
 
-    def _make_sim(self) -> Any:
-        raise NotImplementedError
+    def _object_joint(self) -> tuple[slice, slice]:
+        """The block's qpos and qvel slices; empty without a block (fetch_reach)."""
+        if not self._sim.has_object:
+            return slice(0, 0), slice(0, 0)
+        return mj.free_joint(self.model, "object0:joint")
 
     # ---- simulator --------------------------------------------------------------------
     def _reset_sim(self, rng: np.random.Generator) -> None:
@@ -126,36 +110,30 @@ class _FetchImageEnv(mj.MujocoGoalImageEnv):
         margin = self.workspace_margin or 0.0
         return low - margin, high + margin
 
+    @abstractmethod
     def _task_hand_box(self) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError
+        """The box the gripper must be able to reach for the task (before the margin)."""
 
     def gripper_position(self) -> np.ndarray:
         """The gripper (grip site) position, world xyz."""
         return self.data.site("robot0:grip").xpos.copy()
 
     def set_gripper_position(self, xyz: np.ndarray) -> np.ndarray:
-        """Move only the arm so the gripper sits at ``xyz``; return the position reached.
-
-        The arm starts from Fetch's reset posture each time, so the image is a function
-        of the positions alone (the 7-joint arm could otherwise end in other postures).
-        Objects stay where they are.
-        """
+        """Move only the arm so the gripper sits at ``xyz``, from Fetch's reset posture;
+        return the position reached. Objects stay where they are."""
         target = mj.check_vector(xyz, 3, "xyz")
+        object_qpos, object_qvel = self._object_joint()
+        object_pose = self.data.qpos[object_qpos].copy()
         qpos = self._sim.initial_qpos.copy()
-        object_qpos = self.data.qpos[self._object_qpos].copy()
-        qpos[self._object_qpos] = object_qpos
-        self.data.qpos[:] = qpos
-        self.data.qvel[:] = 0.0
-        self.data.qacc_warmstart[:] = 0.0
-        mj.sync_mocap(self.model, self.data)
+        qpos[object_qpos] = object_pose
 
         def hold() -> None:
             self._sim._step_callback()  # keep the gripper blocked, as Fetch's step does
-            self.data.qpos[self._object_qpos] = object_qpos
-            self.data.qvel[self._object_qvel] = 0.0
+            self.data.qpos[object_qpos] = object_pose
+            self.data.qvel[object_qvel] = 0.0
 
         mj.drive_mocap(
-            self.model, self.data, self.gripper_position, target, _DRIVE_SUBSTEPS, hold, 0.02
+            self.model, self.data, qpos, self.gripper_position, target, _DRIVE_SUBSTEPS, hold, 0.02
         )
         return self.gripper_position()
 
@@ -174,9 +152,6 @@ class FetchReachImageEnv(_FetchImageEnv):
         with _quiet_import():
             from gymnasium_robotics.envs.fetch.reach import MujocoFetchReachEnv
         return MujocoFetchReachEnv(reward_type="dense")
-
-    def _state_dims(self) -> tuple[int, int]:
-        return 3, 3
 
     def _task_state(self) -> np.ndarray:
         return self.gripper_position()
@@ -220,8 +195,9 @@ class FetchPushImageEnv(_FetchImageEnv):
     def set_controllable_state(self, state: np.ndarray) -> np.ndarray:
         """Place the block at ``state`` (upright, at rest); the arm does not move."""
         xyz = mj.check_vector(state, 3, "state")
-        self.data.qpos[self._object_qpos] = np.concatenate([xyz, [1.0, 0.0, 0.0, 0.0]])
-        self.data.qvel[self._object_qvel] = 0.0
+        object_qpos, object_qvel = self._object_joint()
+        self.data.qpos[object_qpos] = np.concatenate([xyz, [1.0, 0.0, 0.0, 0.0]])
+        self.data.qvel[object_qvel] = 0.0
         mujoco.mj_forward(self.model, self.data)
         return self.controllable_state()
 

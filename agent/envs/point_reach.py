@@ -27,9 +27,6 @@ class PointReachEnv(GoalImageEnv):
     """
 
     state_names: ClassVar[tuple[str, ...]] = ("x", "y")
-    metric_names: ClassVar[tuple[str, ...]] = ("is_success", "distance")
-    min_image_size: ClassVar[int] = 32
-    default_image_size: ClassVar[int] = 48
 
     def __init__(
         self,
@@ -62,9 +59,6 @@ class PointReachEnv(GoalImageEnv):
         self._blob_color = np.array([225.0, 215.0, -40.0], np.float32)
         self._pos = np.zeros(2)
         self._goal = np.zeros(2)
-
-    def _state_dims(self) -> tuple[int, int]:
-        return 2, 2
 
     def _reset_sim(self, rng: np.random.Generator) -> None:
         self._goal = rng.uniform(-0.9 * ARENA, 0.9 * ARENA, 2)

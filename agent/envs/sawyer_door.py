@@ -31,7 +31,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-import gymnasium as gym
 import mujoco
 import numpy as np
 
@@ -70,8 +69,7 @@ class SawyerDoorImageEnv(mj.MujocoGoalImageEnv):
         "angle_distance",
         "hand_distance",
     )
-    default_image_size: ClassVar[int] = 48
-    min_image_size: ClassVar[int] = 32
+    default_camera: ClassVar[dict[str, Any]] = DEFAULT_CAMERA
 
     def __init__(
         self,
@@ -87,20 +85,18 @@ class SawyerDoorImageEnv(mj.MujocoGoalImageEnv):
             raise ValueError(f"action_scale must be in (0, 0.1] m, got {action_scale}")
         if isinstance(frame_skip, bool) or not isinstance(frame_skip, int) or frame_skip < 1:
             raise ValueError(f"frame_skip must be an integer >= 1, got {frame_skip!r}")
-        super().__init__(image_size=image_size, obs_mode=obs_mode, render_mode=render_mode)
-        self.workspace_margin = mj.check_margin(workspace_margin)
-        from metaworld.envs.sawyer_door_v3 import SawyerDoorEnvV3
-
-        self._sim = SawyerDoorEnvV3(render_mode=None)  # its renderer is never used
-        self.model, self.data = self._sim.model, self._sim.data
-        self._init_camera(camera, DEFAULT_CAMERA)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
+        super().__init__(
+            image_size=image_size,
+            obs_mode=obs_mode,
+            render_mode=render_mode,
+            camera=camera,
+            workspace_margin=workspace_margin,
+        )
         self.action_scale = float(action_scale)
         self.frame_skip = frame_skip
         self._door_qpos = self.model.joint("doorjoint").qposadr[0]
         self._door_qvel = self.model.joint("doorjoint").dofadr[0]
         self._door_range = self.model.joint("doorjoint").range.copy()
-        self._goal = np.zeros(4)
         # the start state, computed once: metaworld's hand reset, then close the gripper
         self.model.body("door").pos = DOOR_POSITION
         mujoco.mj_resetData(self.model, self.data)
@@ -112,10 +108,13 @@ class SawyerDoorImageEnv(mj.MujocoGoalImageEnv):
         self._home = mj.snapshot(self.model, self.data)
         self._home_qpos = self.data.qpos.copy()
 
-    # ---- simulator --------------------------------------------------------------------
-    def _state_dims(self) -> tuple[int, int]:
-        return 4, 4
+    def _make_sim(self) -> Any:
+        # imported only when a door env is built: metaworld takes about a second to import
+        from metaworld.envs.sawyer_door_v3 import SawyerDoorEnvV3
 
+        return SawyerDoorEnvV3(render_mode=None)  # its renderer is never used
+
+    # ---- simulator --------------------------------------------------------------------
     def _physics_step(self) -> None:
         self.data.ctrl[:] = GRIPPER_CLOSED
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
@@ -157,11 +156,8 @@ class SawyerDoorImageEnv(mj.MujocoGoalImageEnv):
         """
         s = mj.check_vector(state, 4, "state")
         angle = float(np.clip(s[3], *self._door_range))
-        self.data.qpos[:] = self._home_qpos
-        self.data.qpos[self._door_qpos] = angle
-        self.data.qvel[:] = 0.0
-        self.data.qacc_warmstart[:] = 0.0
-        mj.sync_mocap(self.model, self.data)
+        qpos = self._home_qpos.copy()
+        qpos[self._door_qpos] = angle
 
         def hold() -> None:
             self.data.qpos[self._door_qpos] = angle
@@ -171,7 +167,7 @@ class SawyerDoorImageEnv(mj.MujocoGoalImageEnv):
             return self.data.body("hand").xpos.copy()
 
         self.data.ctrl[:] = GRIPPER_CLOSED
-        mj.drive_mocap(self.model, self.data, hand, s[:3], _DRIVE_SUBSTEPS, hold)
+        mj.drive_mocap(self.model, self.data, qpos, hand, s[:3], _DRIVE_SUBSTEPS, hold)
         return self.controllable_state()
 
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
