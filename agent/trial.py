@@ -57,7 +57,6 @@ from encoders.torch_base import resolve_device
 Report = Callable[[int, dict[str, float]], None]
 #: ``record(filename, data)``: a file the trial made (an episode video)
 Record = Callable[[str, bytes], None]
-DEFAULT_NUM_IMAGES = 1000
 #: env steps of random policy measured for ``reward_scale="auto"`` (5 episodes, 5 goals)
 SCALE_STEPS = 5 * EPISODE_STEPS
 
@@ -93,10 +92,7 @@ def build_encoder(config: TrialConfig, image_size: int, device: torch.device) ->
         config.method, shape, config.seed, str(device), **config.encoder_params
     )
     if encoder.needs_fit:
-        num_images = getattr(encoder, "num_images", None) or config.encoder_params.get(
-            "num_images", DEFAULT_NUM_IMAGES
-        )
-        encoder.fit(collect_random_images(config, int(num_images)), progress=False)
+        encoder.fit(collect_random_images(config, encoder.num_images), progress=False)
     return encoder
 
 
