@@ -163,7 +163,7 @@ def write_error(url: str, error: BaseException, grace: float) -> StorageError:
             f"storage: lost {where} for over {grace:g} s (execution.storage_grace): {reason}; "
             f"bring the database back, then {resume}"
         )
-    return StorageError(f"storage: cannot write {where}: {reason}")
+    return StorageError(f"storage: cannot use {where}: {reason}")
 
 
 def sqlite_path(url: str) -> Path | None:
