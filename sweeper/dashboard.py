@@ -15,14 +15,14 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from sweeper.spec import StudySpec
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``sweeper dashboard``."""
-    from sweeper.cli import add_spec_arguments
-
-    add_spec_arguments(parser)
+    """The options of ``sweeper dashboard`` (``sweeper.cli`` adds the spec and --storage)."""
     parser.add_argument(
         "--host", default="127.0.0.1", help="address to listen on (default: 127.0.0.1)"
     )
@@ -46,17 +46,16 @@ def _port(text: str) -> int:
     return port
 
 
-def run(args: argparse.Namespace) -> int:
-    """``sweeper dashboard``: serve until stopped; exit 0, or 2 on a bad spec or storage."""
-    from sweeper.cli import spec_from_args
+def run(spec: StudySpec, args: argparse.Namespace) -> int:
+    """``sweeper dashboard``: serve until stopped; exit 0, or 2 when there is no study to
+    show (no database file, an empty database, no such study), the storage cannot be read,
+    or the address cannot be listened on."""
+    from sweeper.artifacts import artifact_location
 
     try:
-        from sweeper.artifacts import artifact_location
-
-        spec = spec_from_args(args)
         artifacts = artifact_location(spec)
         return serve(spec.storage_url, spec.study, args.host, args.port, artifacts=artifacts)
-    except ValueError as e:  # SpecError, StorageError, no such study
+    except ValueError as e:  # StorageError, NoStudy
         print(f"sweeper dashboard: {e}", file=sys.stderr)
         return 2
     except OSError as e:  # the port is taken, the host is not ours
@@ -82,31 +81,10 @@ def serve(
     from socketserver import ThreadingMixIn
     from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
-    import optuna
     import optuna_dashboard
-    from optuna.exceptions import StorageInternalError
-    from sqlalchemy.exc import SQLAlchemyError
 
-    from sweeper.storage import (
-        StudyStore,
-        database_error,
-        open_storage,
-        redact,
-        resolve_url,
-        sqlite_path,
-    )
-
-    path = sqlite_path(resolve_url(storage_url))
-    if path is not None and not path.is_file():
-        raise ValueError(f"storage: no database file at {path}: launch the study first")
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    try:
-        storage = open_storage(storage_url, create=False)
-        store = StudyStore.find(storage, study_name)
-    except (SQLAlchemyError, StorageInternalError) as e:  # no Optuna tables, no server
-        raise database_error("cannot read", storage_url, e) from None
-    if store is None:
-        raise ValueError(f"study {study_name!r} not found in {redact(storage_url)}")
+    from sweeper.artifacts import ArtifactStore
+    from sweeper.study import open_study
 
     class Server(ThreadingMixIn, WSGIServer):
         daemon_threads = True  # a slow browser request never blocks shutdown
@@ -115,28 +93,26 @@ def serve(
         def log_message(self, format: str, *args: Any) -> None:  # one line per request: noise
             pass
 
-    from sweeper.artifacts import ArtifactStore
-
     store_of_artifacts = ArtifactStore(artifacts) if artifacts is not None else None
-    app = optuna_dashboard.wsgi(storage, artifact_store=store_of_artifacts)
-    server = make_server(host, port, app, server_class=Server, handler_class=QuietHandler)
-    url = f"http://{host}:{server.server_port}/dashboard/studies/{store.study_id}"
-    main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt) if main_thread else None
-    try:
-        if ready is None:
-            print(f"optuna-dashboard: {url}  (Ctrl-C stops it)", flush=True)
-        else:
-            ready(url)
-        server.serve_forever()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        if main_thread:
-            signal.signal(signal.SIGTERM, previous)
-        server.server_close()
-        storage.remove_session()
-        storage.engine.dispose()
+    # not read-only: the dashboard edits notes; create=False: an absent study is an error
+    with open_study(storage_url, study_name, write=True, create=False) as store:
+        app = optuna_dashboard.wsgi(store.storage, artifact_store=store_of_artifacts)
+        server = make_server(host, port, app, server_class=Server, handler_class=QuietHandler)
+        url = f"http://{host}:{server.server_port}/dashboard/studies/{store.study_id}"
+        main_thread = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGTERM, _raise_interrupt) if main_thread else None
+        try:
+            if ready is None:
+                print(f"optuna-dashboard: {url}  (Ctrl-C stops it)", flush=True)
+            else:
+                ready(url)
+            server.serve_forever()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            if main_thread:
+                signal.signal(signal.SIGTERM, previous)
+            server.server_close()
     return 0
 
 

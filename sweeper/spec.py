@@ -428,6 +428,11 @@ class Execution(_Strict):
     keep_checkpoints: bool = Field(
         False, description="keep a finished trial's checkpoint (false: removed once recorded)"
     )
+    storage_grace: NonNegFloat = Field(
+        60.0,
+        description="seconds the driver retries a database write while the database is "
+        "unreachable, before it stops (the trials in flight resume at the next launch)",
+    )
 
     @field_validator("address")
     @classmethod

@@ -1,33 +1,38 @@
 """``sweeper status SPEC``: the per-method ledger of a study (done, running, failed, left).
 
 Counts are per plan key (``sweeper.storage.ledger``): a key re-run after a crash is
-counted once, by its current trial. Reads only; never creates the study or its file.
+counted once, by its current trial. Reads only, on read-only connections
+(``sweeper.study.open_study``); never creates the study or its file.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
+
+from sweeper.plan import build_plan
+from sweeper.storage import STORAGE_GRACE, current_trials, ledger, redact
+from sweeper.study import NoStudy, open_study
+
+if TYPE_CHECKING:
+    from sweeper.spec import StudySpec
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``sweeper status``."""
-    from sweeper.cli import add_spec_arguments
-
-    add_spec_arguments(parser)
+    """``sweeper status`` has no options of its own (``sweeper.cli`` adds the spec and
+    --storage)."""
 
 
-def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
-    """``sweeper status``: print the ledger; exit 0, or 2 on a bad spec or storage."""
-    from sweeper.launch import prepare
-    from sweeper.storage import StorageError, redact
-
+def run(spec: StudySpec, args: argparse.Namespace, stream: TextIO | None = None) -> int:
+    """``sweeper status``: print the ledger; exit 0, or 2 when the study cannot be read or
+    was launched with another plan."""
     stream = sys.stdout if stream is None else stream
     try:
-        spec, plan = prepare(args.spec, storage=args.storage)
-        lines = status_lines(spec.study, spec.storage_url, plan.keys(), plan.hash)
-    except (ValueError, StorageError) as e:
+        plan = build_plan(spec)
+        grace = spec.execution.storage_grace
+        lines = status_lines(spec.study, spec.storage_url, plan.keys(), plan.hash, grace)
+    except ValueError as e:  # StorageError, a plan the spec cannot give
         print(f"sweeper status: {e}", file=sys.stderr)
         return 2
     print(f"study {spec.study!r} in {redact(spec.storage_url)}", file=stream)
@@ -35,45 +40,17 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:
     return 0
 
 
-def status_lines(study: str, url: str, keys: list[str], plan_hash: str) -> list[str]:
+def status_lines(
+    study: str, url: str, keys: list[str], plan_hash: str, grace: float = STORAGE_GRACE
+) -> list[str]:
     """The ledger table and notes of ``study`` in ``url`` for the planned ``keys``."""
-    import optuna
-    from sqlalchemy.exc import SQLAlchemyError
-
-    from sweeper.storage import (
-        StorageError,
-        StudyStore,
-        current_trials,
-        database_error,
-        ledger,
-        open_storage,
-        resolve_url,
-        sqlite_path,
-    )
-
-    path = sqlite_path(resolve_url(url))
-    if path is not None and not path.exists():
-        return [*_table(ledger(keys, [], False)), "not launched yet (no database file)"]
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
     try:
-        storage = open_storage(url, create=False)
-    except (SQLAlchemyError, optuna.exceptions.StorageInternalError) as e:
-        raise database_error("cannot read", url, e) from None
-    try:
-        store = StudyStore.find(storage, study)
-        if store is None:
-            return [*_table(ledger(keys, [], False)), "not launched yet (no such study)"]
-        attrs = store.attrs
-        if attrs.get("plan_hash") not in (None, plan_hash):
-            raise StorageError(
-                f"study {study!r} was launched with another plan (plan_hash "
-                f"{attrs['plan_hash'][:12]}, this spec gives {plan_hash[:12]})"
-            )
-        trials = store.trials()
-        alive = store.driver_alive()
-    finally:
-        storage.remove_session()
-        storage.engine.dispose()
+        with open_study(url, study, write=False, plan_hash=plan_hash, grace=grace) as store:
+            attrs = store.attrs
+            trials = store.trials()
+            alive = store.driver_alive()
+    except NoStudy as e:
+        return [*_table(ledger(keys, [], False)), f"not launched yet ({e.why})"]
     lines = _table(ledger(keys, trials, alive))
     confirm = attrs.get("confirm")
     if confirm:  # the confirmation stage (sweeper confirm), counted apart

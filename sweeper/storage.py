@@ -12,6 +12,7 @@ optuna-dashboard (or ``sweeper status``) can read a study while the driver write
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import os
@@ -21,12 +22,12 @@ import sqlite3
 import subprocess
 import threading
 import time
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from agent.config import Outcome
 
@@ -39,6 +40,11 @@ if TYPE_CHECKING:  # optuna and sqlalchemy are imported where used: `sweeper --h
 SQLITE_TIMEOUT = 60.0
 #: a driver whose heartbeat is older than this is considered dead
 DRIVER_STALE_SECONDS = 60.0
+#: seconds the driver retries a write while the database is unreachable (the default of
+#: the spec's ``execution.storage_grace``)
+STORAGE_GRACE = 60.0
+#: the longest wait between two tries of a write during an outage
+RETRY_MAX_DELAY = 5.0
 #: distributions whose versions the study records
 VERSIONED_PACKAGES = (
     "gcrl-sweeper",
@@ -87,9 +93,77 @@ def database_error(action: str, url: str, error: BaseException) -> StorageError:
     """``storage: {action} {url}: {reason}`` for an error the database raised, on one line:
     the driver's own message (SQLAlchemy keeps it as ``orig``), first line, password hidden.
     """
-    text = str(getattr(error, "orig", None) or error).strip()
-    reason = text.splitlines()[0] if text else type(error).__name__
-    return StorageError(f"storage: {action} {redact(url)}: {reason}")
+    return StorageError(f"storage: {action} {redact(url)}: {reason_of(error)}")
+
+
+def reason_of(error: BaseException) -> str:
+    """The database driver's own message of ``error``, first line. Optuna wraps every
+    SQLAlchemy error of a commit in a StorageInternalError whose text ("... e.g. exceeding
+    max length") guesses wrong; the cause it wraps says what happened."""
+    cause = database_cause(error)
+    text = str(getattr(cause, "orig", None) or cause).strip()
+    return text.splitlines()[0] if text else type(cause).__name__
+
+
+def database_cause(error: BaseException) -> BaseException:
+    """``error`` without Optuna's StorageInternalError around it."""
+    while type(error).__name__ == "StorageInternalError" and error.__cause__ is not None:
+        error = error.__cause__
+    return error
+
+
+def is_database_error(error: BaseException) -> bool:
+    """Whether the database (or the connection to it) raised ``error``."""
+    from sqlalchemy.exc import SQLAlchemyError
+
+    return isinstance(database_cause(error), SQLAlchemyError | sqlite3.Error)
+
+
+def is_outage(error: BaseException) -> bool:
+    """Whether ``error`` is a lost, refused or busy connection, which a retry may get past,
+    rather than a fault of the database itself (a full disk, a read-only file, bad data).
+
+    PostgreSQL: errors without an SQLSTATE (the client could not connect or lost the
+    connection), class 08 (connection exception), 57P (the server shuts down or starts up)
+    and 40 (a deadlock or serialisation failure: the transaction was rolled back). SQLite:
+    a lock that outlasted the busy timeout.
+    """
+    from sqlalchemy.exc import DBAPIError
+
+    cause = database_cause(error)
+    if isinstance(cause, DBAPIError) and cause.connection_invalidated:
+        return True
+    orig = getattr(cause, "orig", cause)
+    if isinstance(orig, sqlite3.OperationalError):
+        return "database is locked" in str(orig)
+    if type(orig).__module__.startswith("psycopg"):
+        state = getattr(orig, "sqlstate", None)
+        return state is None or state.startswith(("08", "57P", "40"))
+    return False
+
+
+def write_error(url: str, error: BaseException, grace: float) -> StorageError:
+    """The one-line StorageError of a write the database refused, naming the cause and the
+    fix; the trials in flight stay RUNNING and the next launch resumes them."""
+    reason = reason_of(error)
+    where = redact(url)
+    resume = "launch again to resume the trials in flight"
+    state = getattr(getattr(database_cause(error), "orig", None), "sqlstate", None)
+    if "disk is full" in reason or state == "53100":  # SQLite's and PostgreSQL's full disk
+        return StorageError(
+            f"storage: cannot write {where}: its disk is full ({reason}); free space, then {resume}"
+        )
+    if "readonly" in reason or "read-only" in reason:
+        return StorageError(
+            f"storage: cannot write {where}: it is read-only ({reason}); make it writable or "
+            f"give another --storage, then {resume}"
+        )
+    if is_outage(error):
+        return StorageError(
+            f"storage: lost {where} for over {grace:g} s (execution.storage_grace): {reason}; "
+            f"bring the database back, then {resume}"
+        )
+    return StorageError(f"storage: cannot use {where}: {reason}")
 
 
 def sqlite_path(url: str) -> Path | None:
@@ -147,21 +221,27 @@ def check_storage(url: str) -> None:
         engine.dispose()
 
 
-def open_storage(url: str, create: bool = True) -> optuna.storages.RDBStorage:
+def open_storage(
+    url: str, create: bool = True, *, read_only: bool = False
+) -> optuna.storages.RDBStorage:
     """An Optuna RDB storage for ``url``.
 
     ``create``: create the tables (and the SQLite file) if needed, as the driver does;
     readers pass False. Optuna's first open also inserts version rows, so a reader
     opening a database while it is being created can collide with the driver: the driver
-    retries, a reader gets the SQLAlchemy error.
+    retries, a reader gets the SQLAlchemy error. ``read_only``: every connection is
+    read-only (``read_only_engine_kwargs``), so nothing can be written, and a finished
+    SQLite study on read-only media can be read.
     """
     import optuna
     from sqlalchemy.exc import SQLAlchemyError
 
     resolved = resolve_url(url)
-    engine_kwargs: dict[str, Any] = {}
     path = sqlite_path(resolved)
-    if path is not None:
+    if read_only:
+        create = False
+        engine_kwargs = read_only_engine_kwargs(resolved)
+    elif path is not None:
         if create:
             path.parent.mkdir(parents=True, exist_ok=True)
             # WAL is a property of the database file: once set, every later connection (the
@@ -169,9 +249,9 @@ def open_storage(url: str, create: bool = True) -> optuna.storages.RDBStorage:
             with sqlite3.connect(path, timeout=SQLITE_TIMEOUT) as connection:
                 connection.execute("PRAGMA journal_mode=WAL")
             connection.close()
-        engine_kwargs["connect_args"] = {"timeout": SQLITE_TIMEOUT}
+        engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT}}
     else:
-        engine_kwargs["pool_pre_ping"] = True
+        engine_kwargs = {"pool_pre_ping": True}
 
     def build() -> optuna.storages.RDBStorage:
         return optuna.storages.RDBStorage(
@@ -184,6 +264,44 @@ def open_storage(url: str, create: bool = True) -> optuna.storages.RDBStorage:
         except (SQLAlchemyError, optuna.exceptions.StorageInternalError):
             time.sleep(0.5)
     return build()
+
+
+def read_only_engine_kwargs(url: str) -> dict[str, Any]:
+    """``create_engine`` arguments for a reader that the database itself keeps from
+    writing: SQLite opened with ``mode=ro`` (``connect_read_only``), a PostgreSQL session
+    whose transactions are read-only."""
+    from sqlalchemy.engine import make_url
+
+    resolved = resolve_url(url)
+    path = sqlite_path(resolved)
+    if path is not None:
+        return {"creator": functools.partial(connect_read_only, path)}
+    options = make_url(resolved).query.get("options", "")
+    if not isinstance(options, str):  # given twice in the URL
+        options = " ".join(options)
+    options = f"{options} -c default_transaction_read_only=on".strip()
+    return {"pool_pre_ping": True, "connect_args": {"options": options}}
+
+
+def connect_read_only(path: Path) -> sqlite3.Connection:
+    """A read-only connection to the SQLite file ``path`` (SQLite refuses every write).
+
+    A database in WAL mode needs its ``-shm`` file to be read; a live driver always has
+    one. When it is absent and cannot be created (read-only media, so no driver can write
+    there either), the file is opened ``immutable``: read without locks.
+    """
+    uri = f"{path.absolute().as_uri()}?mode=ro"
+    connection = sqlite3.connect(uri, uri=True, timeout=SQLITE_TIMEOUT, check_same_thread=False)
+    try:
+        connection.execute("SELECT count(*) FROM sqlite_master").fetchone()
+    except sqlite3.OperationalError as e:
+        connection.close()
+        if "unable to open" not in str(e):
+            raise
+        connection = sqlite3.connect(
+            f"{uri}&immutable=1", uri=True, timeout=SQLITE_TIMEOUT, check_same_thread=False
+        )
+    return connection
 
 
 def code_revision() -> str:
@@ -232,14 +350,22 @@ class Counts:
     left: int = 0  # not started, waiting, or interrupted (relaunch resumes it)
 
 
-def current_trials(trials: Iterable[FrozenTrial]) -> dict[str, FrozenTrial]:
-    """Key -> the key's current trial (the highest-numbered trial with that key)."""
-    current: dict[str, FrozenTrial] = {}
-    for trial in trials:
-        key = trial.user_attrs.get("key")
-        if key is not None and (key not in current or trial.number > current[key].number):
-            current[key] = trial
+def current_numbers(trials: Iterable[tuple[str | None, int]]) -> dict[str, int]:
+    """Key -> the number of the key's current trial, from ``(key, number)`` pairs: the
+    highest-numbered trial of a key is its current one (a re-run gets a fresh trial)."""
+    current: dict[str, int] = {}
+    for key, number in trials:
+        if key is not None and number > current.get(key, -1):
+            current[key] = number
     return current
+
+
+def current_trials(trials: Iterable[FrozenTrial]) -> dict[str, FrozenTrial]:
+    """Key -> the key's current trial (``current_numbers``)."""
+    trials = list(trials)
+    numbers = current_numbers((t.user_attrs.get("key"), t.number) for t in trials)
+    by_number = {t.number: t for t in trials}
+    return {key: by_number[number] for key, number in numbers.items()}
 
 
 class KeyStatus(StrEnum):
@@ -267,23 +393,34 @@ def key_status(state: str | None, outcome: Any, driver_alive: bool) -> KeyStatus
     return KeyStatus.LEFT if outcome == Outcome.INTERRUPTED else KeyStatus.FAILED
 
 
+def tally(
+    keys: Iterable[str], current: Mapping[str, tuple[str | None, Any]], driver_alive: bool
+) -> Counts:
+    """The ledger line of ``keys``: ``current`` maps a key to its current trial's state name
+    and ``outcome`` attr (a key without a trial is missing)."""
+    line = dict.fromkeys(Counts.__dataclass_fields__, 0)
+    for key in keys:
+        state, outcome = current.get(key, (None, None))
+        status = key_status(state, outcome, driver_alive)
+        line["planned"] += 1
+        line[status] += 1
+        line["diverged"] += status == KeyStatus.DONE and outcome == Outcome.DIVERGED
+    return Counts(**line)
+
+
 def ledger(
     plan_keys: Sequence[str], trials: Iterable[FrozenTrial], driver_alive: bool
 ) -> dict[str, Counts]:
     """Per-method counts of the planned keys (method = the key's first part, after the
     ``confirm/`` of a confirmation key)."""
-    current = current_trials(trials)
-    tally: dict[str, dict[str, int]] = {}
+    current = {
+        key: (trial.state.name, trial.user_attrs.get("outcome"))
+        for key, trial in current_trials(trials).items()
+    }
+    by_method: dict[str, list[str]] = {}
     for key in plan_keys:
-        method = key.removeprefix("confirm/").split("/")[0]
-        line = tally.setdefault(method, dict.fromkeys(Counts.__dataclass_fields__, 0))
-        line["planned"] += 1
-        trial = current.get(key)
-        outcome = trial.user_attrs.get("outcome") if trial else None
-        status = key_status(trial.state.name if trial else None, outcome, driver_alive)
-        line[status] += 1
-        line["diverged"] += status == KeyStatus.DONE and outcome == Outcome.DIVERGED
-    return {method: Counts(**line) for method, line in tally.items()}
+        by_method.setdefault(key.removeprefix("confirm/").split("/")[0], []).append(key)
+    return {method: tally(keys, current, driver_alive) for method, keys in by_method.items()}
 
 
 #: the name optuna-dashboard shows for the study's objective (not "Objective 0")
@@ -301,20 +438,66 @@ def name_objective(study) -> None:
         study.set_metric_names([OBJECTIVE_NAME])
 
 
-class StudyStore:
-    """The driver's handle on one study: every write the sweep makes goes through here."""
+_Method = TypeVar("_Method", bound=Callable[..., Any])
 
-    def __init__(self, storage: optuna.storages.RDBStorage, study_id: int) -> None:
+
+def retried(method: _Method) -> _Method:
+    """Run a ``StudyStore`` method again, with growing pauses, while the database is out
+    (``is_outage``) and the store's ``grace`` has not run out; then, or at once for any
+    other database error, raise ``write_error``'s one-line StorageError."""
+
+    @functools.wraps(method)
+    def again(self: StudyStore, *args: Any, **kwargs: Any) -> Any:
+        deadline = time.monotonic() + self.grace
+        delay = 0.25
+        while True:
+            try:
+                return method(self, *args, **kwargs)
+            except Exception as e:
+                if not is_database_error(e):
+                    raise
+                if not is_outage(e) or time.monotonic() + delay > deadline:
+                    raise write_error(self.storage.url, e, self.grace) from None
+            time.sleep(delay)
+            delay = min(2 * delay, RETRY_MAX_DELAY)
+
+    return again  # type: ignore[return-value]
+
+
+def plan_mismatch(name: str, stored: str, given: str) -> StorageError:
+    """The error for a study launched with another plan: two plans in one study would mix
+    two budgets."""
+    return StorageError(
+        f"study {name!r} in this storage was launched with another plan "
+        f"(plan_hash {stored[:12]}, this spec gives {given[:12]}): the spec's methods, "
+        "budget, seeds or search space changed. Use a new study name, or restore the old spec."
+    )
+
+
+class StudyStore:
+    """The driver's handle on one study: every write the sweep makes goes through here.
+
+    A write (and a read of attrs or trials) that meets a database outage is tried again
+    for up to ``grace`` seconds (``retried``); a write the database refuses raises a
+    one-line StorageError naming the cause and the fix.
+    """
+
+    def __init__(
+        self, storage: optuna.storages.RDBStorage, study_id: int, grace: float = STORAGE_GRACE
+    ) -> None:
         self.storage = storage
         self.study_id = study_id
+        self.grace = grace
 
     # -- study ------------------------------------------------------------------------
 
     @classmethod
-    def find(cls, storage: optuna.storages.RDBStorage, name: str) -> StudyStore | None:
+    def find(
+        cls, storage: optuna.storages.RDBStorage, name: str, grace: float = STORAGE_GRACE
+    ) -> StudyStore | None:
         """The study called ``name``, or None if there is none."""
         try:
-            return cls(storage, storage.get_study_id_from_name(name))
+            return cls(storage, storage.get_study_id_from_name(name), grace)
         except KeyError:
             return None
 
@@ -324,6 +507,7 @@ class StudyStore:
         storage: optuna.storages.RDBStorage,
         name: str,
         attrs: Mapping[str, Any],
+        grace: float = STORAGE_GRACE,
     ) -> StudyStore:
         """Load study ``name`` or create it with study user attrs ``attrs``.
 
@@ -334,14 +518,14 @@ class StudyStore:
         from optuna.exceptions import DuplicatedStudyError
         from optuna.study import StudyDirection
 
-        store = cls.find(storage, name)
+        store = cls.find(storage, name, grace)
         if store is None:
             try:
                 study_id = storage.create_new_study([StudyDirection.MAXIMIZE], name)
                 name_objective(optuna.Study(study_name=name, storage=storage))
             except DuplicatedStudyError:  # another driver created it meanwhile
                 study_id = storage.get_study_id_from_name(name)
-            store = cls(storage, study_id)
+            store = cls(storage, study_id, grace)
         stored = store.attrs
         if "plan_hash" not in stored:  # new, or a creation cut short before its attrs
             if store.trials():
@@ -352,23 +536,21 @@ class StudyStore:
             for key, value in attrs.items():
                 storage.set_study_user_attr(study_id=store.study_id, key=key, value=value)
         elif stored["plan_hash"] != attrs["plan_hash"]:
-            raise StorageError(
-                f"study {name!r} in this storage was launched with another plan "
-                f"(plan_hash {stored['plan_hash'][:12]}, this spec gives "
-                f"{attrs['plan_hash'][:12]}): the spec's methods, budget, seeds or search "
-                "space changed. Use a new study name, or restore the old spec."
-            )
+            raise plan_mismatch(name, stored["plan_hash"], attrs["plan_hash"])
         return store
 
     @property
+    @retried
     def attrs(self) -> dict[str, Any]:
         """The study's user attrs."""
         return self.storage.get_study_user_attrs(self.study_id)
 
+    @retried
     def set_study_attr(self, key: str, value: Any) -> None:
         """Set one study user attr (as the driver only)."""
         self.storage.set_study_user_attr(self.study_id, key, value)
 
+    @retried
     def trials(self) -> list[FrozenTrial]:
         """All trials, oldest first."""
         return self.storage.get_all_trials(self.study_id, deepcopy=False)
@@ -379,6 +561,7 @@ class StudyStore:
         """Whether a live driver holds this study (see ``driver_alive``)."""
         return driver_alive(self.attrs.get("driver"), now)
 
+    @retried
     def claim_driver(self) -> None:
         """Become the study's driver, or raise StudyBusy if another one is alive.
 
@@ -412,11 +595,18 @@ class StudyStore:
             _write_study_attr(connection, self.study_id, "driver", _this_driver())
 
     def release_driver(self) -> None:
-        """Say that no driver runs the study any more (unless another one took it over)."""
-        with self._locked() as connection:
-            driver = _read_study_attr(connection, self.study_id, "driver")
-            if not driver or _is_this_process(driver):
-                _write_study_attr(connection, self.study_id, "driver", None)
+        """Say that no driver runs the study any more (unless another one took it over).
+
+        A database that cannot be written now leaves the record as it is: this process
+        ends, and a later launch takes the study over as a dead driver's."""
+        try:
+            with self._locked() as connection:
+                driver = _read_study_attr(connection, self.study_id, "driver")
+                if not driver or _is_this_process(driver):
+                    _write_study_attr(connection, self.study_id, "driver", None)
+        except Exception as e:
+            if not is_database_error(e):
+                raise
 
     @contextlib.contextmanager
     def heartbeats(self, interval: float) -> Iterator[Heartbeat]:
@@ -510,6 +700,7 @@ class StudyStore:
             attrs["superseded_by"] = successor
         self.fail(trial_id, attrs)
 
+    @retried
     def add_waiting(
         self,
         params: Mapping[str, Any],
@@ -537,6 +728,7 @@ class StudyStore:
         trial_id = self.storage.create_new_trial(self.study_id, template_trial=template)
         return self.storage.get_trial(trial_id)
 
+    @retried
     def add_waiting_many(
         self,
         trials: Sequence[tuple[Mapping[str, Any], Mapping[str, Sequence[Any]], Mapping[str, Any]]],
@@ -600,6 +792,7 @@ class StudyStore:
         made = {trial._trial_id: trial for trial in self.trials()}
         return [made[trial_id] for trial_id in ids]
 
+    @retried
     def start(self, trial_id: int) -> None:
         """WAITING -> RUNNING."""
         from optuna.trial import TrialState
@@ -607,16 +800,19 @@ class StudyStore:
         if not self.storage.set_trial_state_values(trial_id, TrialState.RUNNING):
             raise StorageError(f"trial {trial_id} was started by someone else")
 
+    @retried
     def set_attrs(self, trial_id: int, attrs: Mapping[str, Any]) -> None:
         """Set user attrs of a trial that is not finished."""
         for key, value in attrs.items():
             self.storage.set_trial_user_attr(trial_id, key, value)
 
+    @retried
     def report(self, trial_id: int, points: Mapping[int, float]) -> None:
         """Intermediate values ``step -> success_rate`` (re-writing a step overwrites it)."""
         for step, value in points.items():
             self.storage.set_trial_intermediate_value(trial_id, int(step), float(value))
 
+    @retried
     def complete(self, trial_id: int, value: float, attrs: Mapping[str, Any]) -> None:
         """Set ``attrs``, then COMPLETE with objective ``value``."""
         from optuna.trial import TrialState
@@ -624,6 +820,7 @@ class StudyStore:
         self.set_attrs(trial_id, attrs)
         self.storage.set_trial_state_values(trial_id, TrialState.COMPLETE, [float(value)])
 
+    @retried
     def fail(self, trial_id: int, attrs: Mapping[str, Any]) -> None:
         """Set ``attrs``, then FAIL."""
         from optuna.trial import TrialState

@@ -3,6 +3,7 @@ against the storage (a synthetic study with every trial fate, and the CI study).
 
 from __future__ import annotations
 
+import argparse
 import math
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from optuna_dashboard import get_note, save_note
 from synthetic_study import Special, write_synthetic_study
 
 from agent.metrics import normalized_auc
+from sweeper import aggregate as aggregate_command
 from sweeper import cli
 from sweeper.aggregate import (
     NOTE_BEGIN,
@@ -29,6 +31,7 @@ from sweeper.aggregate import (
     replace_note_section,
     study_info,
 )
+from sweeper.spec import load_spec
 from sweeper.stats import (
     SUMMARIES,
     Group,
@@ -68,7 +71,8 @@ def synthetic(tmp_path_factory):
     save_note(study, "my own notes")
     spec = write_spec(root / "syn.yaml", "syn")
     out = root / "out"
-    assert cli.main(["aggregate", str(spec), "--storage", url, "--out", str(out)]) == 0
+    args = argparse.Namespace(out=str(out), no_dashboard=False)
+    assert aggregate_command.run([load_spec(spec).with_overrides(storage=url)], args) == 0
     return url, out
 
 
@@ -213,8 +217,9 @@ def test_unknown_empty_or_missing_study_is_a_clear_error(synthetic, tmp_path, ca
     optuna.create_study(storage=url, study_name="empty")
     with pytest.raises(ValueError, match="'empty' has no trials yet"):
         load_study_frame(url, "empty")
-    spec = write_spec(tmp_path / "empty.yaml", "empty")
-    assert cli.main(["aggregate", str(spec), "--storage", url, "--no-dashboard"]) == 2
+    spec = load_spec(write_spec(tmp_path / "empty.yaml", "empty")).with_overrides(storage=url)
+    args = argparse.Namespace(out=None, no_dashboard=True)
+    assert aggregate_command.run([spec], args) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("sweeper aggregate: study 'empty' has no trials") and "\n" not in err
     bad = write_spec(tmp_path / "bad.yaml", "syn", extra="trials_per_methd: 3\n")

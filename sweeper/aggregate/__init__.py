@@ -68,9 +68,13 @@ from sweeper.aggregate.tables import (
     profile_table,
     study_tables,
 )
+from sweeper.storage import StorageError, is_database_error, reason_of
+from sweeper.study import open_study
 
 if TYPE_CHECKING:
     import pandas as pd
+
+    from sweeper.spec import StudySpec
 
 __all__ = [
     "AUC_COLUMNS",
@@ -103,10 +107,7 @@ __all__ = [
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``sweeper aggregate``."""
-    from sweeper.cli import add_spec_arguments
-
-    add_spec_arguments(parser, many=True)
+    """The options of ``sweeper aggregate`` (``sweeper.cli`` adds the specs and --storage)."""
     parser.add_argument(
         "--out",
         metavar="DIR",
@@ -121,19 +122,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def run(args: argparse.Namespace) -> int:
-    """``sweeper aggregate``: exit 0, or 2 with a one-line message on a bad spec or study.
+def run(specs: list[StudySpec], args: argparse.Namespace) -> int:
+    """``sweeper aggregate``: exit 0, or 2 with a one-line message on a study that cannot be
+    read. Reads the studies read-only; the only write is the comparison saved into a single
+    study for optuna-dashboard (``--no-dashboard`` skips it).
 
     One spec: that study's report. Several: one combined report of normalised scores over
     the studies (``sweeper.aggregate.combined``), with the first spec's seed.
     """
     from sweeper.aggregate.combined import aggregate_studies
     from sweeper.artifacts import artifact_location
-    from sweeper.cli import spec_from_args
 
-    paths = [args.spec] if isinstance(args.spec, str) else args.spec
     try:
-        specs = [spec_from_args(args, path) for path in paths]
         if len(specs) == 1:
             spec = specs[0]
             out = Path(args.out) if args.out else spec.run_dir / "aggregate"
@@ -151,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
             studies = [(s.storage_url, s.study) for s in specs]
             result = aggregate_studies(studies, out, seed=specs[0].seed)
             files = result.files
-    except ValueError as e:  # SpecError, StorageError, an unknown or empty study
+    except ValueError as e:  # StorageError, an unknown or empty study
         print(f"sweeper aggregate: {e}", file=sys.stderr)
         return 2
     print(f"wrote {len(files)} files to {out}; report: {result.report}")
@@ -217,12 +217,9 @@ def aggregate(
 ) -> AggregateResult:
     """Read the study, compute curves and statistics, write CSV, PNG and the report to
     ``out``; with ``dashboard``, also save the comparison into the study; with the study's
-    ``artifacts`` location, add pictures to the report (``sweeper.frames``)."""
-    import optuna
-    from sqlalchemy.exc import SQLAlchemyError
-
-    from sweeper.storage import StudyStore, open_storage
-
+    ``artifacts`` location, add pictures to the report (``sweeper.frames``). The study is
+    read read-only; a study that cannot be written (read-only media) gets a warning, not
+    the comparison."""
     say = progress or (lambda message: print(message, file=sys.stderr, flush=True))
     start = time.perf_counter()
     frame = load_study_frame(storage_url, study_name)
@@ -230,12 +227,9 @@ def aggregate(
         f"read {frame['trial'].nunique()} trials, {len(frame)} rows of study {study_name!r} "
         f"in {time.perf_counter() - start:.1f} s"
     )
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    storage = open_storage(storage_url, create=False)
-    try:
-        store = StudyStore.find(storage, study_name)
-        alive = store is not None and store.driver_alive()
-        search = stage_frame(frame, "search")  # the confirmation stage is reported apart
+    search = stage_frame(frame, "search")  # the confirmation stage is reported apart
+    with open_study(storage_url, study_name, write=False) as store:
+        alive = store.driver_alive()
         tables = study_tables(search, driver_alive=alive, seed=seed)
         confirm = confirm_table(frame, driver_alive=alive, seed=seed)
         say(f"computed the tables in {time.perf_counter() - start:.1f} s; writing to {out}")
@@ -247,22 +241,22 @@ def aggregate(
             files.append(out / "confirm_table.csv")
             seeds = len(study_info(frame).attrs["confirm"]["seeds"])
             text += "\n" + confirm_markdown(confirm, seeds)
-        report = out / "report.md"
         if artifacts is not None:  # final frames per method, the env's view (sweeper.frames)
             from sweeper.frames import report_pictures
 
-            text += report_pictures(search, storage, artifacts, out)
-        report.write_text(text, encoding="utf-8")
-        if dashboard and store is not None:
-            try:
-                save_to_dashboard(storage, search, tables)
-                say("saved the comparison figures and note into the study (optuna-dashboard)")
-            except (SQLAlchemyError, optuna.exceptions.StorageInternalError) as e:
-                # e.g. a read-only database: the files are written, say so and go on
-                say(f"warning: could not save the comparison into the study: {e}")
-    finally:
-        storage.remove_session()
-        storage.engine.dispose()
+            text += report_pictures(search, store.storage, artifacts, out)
+    report = out / "report.md"
+    report.write_text(text, encoding="utf-8")
+    if dashboard:
+        try:
+            with open_study(storage_url, study_name, write=True, create=False) as store:
+                save_to_dashboard(store.storage, search, tables)
+            say("saved the comparison figures and note into the study (optuna-dashboard)")
+        except Exception as e:
+            if not (isinstance(e, StorageError) or is_database_error(e)):
+                raise
+            # e.g. read-only media: the files are written, say so and go on
+            say(f"warning: the comparison was not saved into the study: {reason_of(e)}")
     say(f"aggregated in {time.perf_counter() - start:.1f} s")
     return AggregateResult(frame, tables, (*files, *figures, report), report)
 

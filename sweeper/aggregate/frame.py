@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     import pandas as pd
 
+    from sweeper.study import StudyRows
+
 TRIAL_COLUMNS = (
     "trial",
     "key",
@@ -56,77 +58,27 @@ def load_study_frame(storage_url: str, study_name: str) -> pd.DataFrame:
     auc = the trial's value, stage = ``"search"`` or ``"confirm"``), ``step``, one column
     per reported metric (from the ``curve`` user attr; a trial without one falls back to
     its intermediate values as ``success_rate``), then ``params_<name>`` per
-    hyperparameter. A trial with no
-    evaluation yet has one row with ``step`` missing. ``study_info(frame).name`` is the
-    ``StudyInfo`` (``study_info(frame)``).
+    hyperparameter. A trial with no evaluation yet has one row with ``step`` missing.
+    ``study_info(frame)`` is the ``StudyInfo``.
 
-    The study is read with one query per Optuna table, not per trial (Optuna's
-    ``get_trials`` takes ~15 s for 2,000 trials x 50 points). Reading a live study is safe:
-    a trial written between two queries shows up partly (no key yet: not counted) or not
-    at all. Raises ValueError when the storage cannot be read or has no such study.
+    Read-only, with ``sweeper.study.read_rows`` (one query per Optuna table). Raises
+    ValueError when the storage cannot be read, has no such study, or the study no trials.
     """
-    import pandas as pd
-    from sqlalchemy import create_engine, inspect, text
-    from sqlalchemy.exc import SQLAlchemyError
+    from sweeper.study import read_rows
 
-    from sweeper.storage import SQLITE_TIMEOUT, database_error, redact, resolve_url, sqlite_path
-
-    url = resolve_url(storage_url)
-    path = sqlite_path(url)
-    if path is not None and not path.is_file():
-        raise ValueError(f"storage: no database file at {path}: launch the study first")
-    connect_args = {"timeout": SQLITE_TIMEOUT} if path is not None else {}
-    engine = create_engine(url, connect_args=connect_args)
-    try:
-        with engine.connect() as connection:
-            if not inspect(connection).has_table("studies"):
-                raise ValueError(f"storage: {redact(storage_url)} holds no Optuna studies")
-            study_id = connection.execute(
-                text("SELECT study_id FROM studies WHERE study_name = :name"),
-                {"name": study_name},
-            ).scalar()
-            if study_id is None:
-                names = connection.execute(text("SELECT study_name FROM studies")).scalars()
-                raise ValueError(
-                    f"study {study_name!r} not found in {redact(storage_url)}; "
-                    f"it has: {', '.join(sorted(names)) or 'no studies'}"
-                )
-
-            def query(sql: str) -> pd.DataFrame:
-                return pd.read_sql_query(text(sql), connection, params={"study": study_id})
-
-            of_study = "JOIN trials t ON t.trial_id = x.trial_id WHERE t.study_id = :study"
-            trials = query("SELECT trial_id, number, state FROM trials WHERE study_id = :study")
-            values = query(
-                f"SELECT x.trial_id, x.value, x.value_type FROM trial_values x {of_study} "
-                "AND x.objective = 0"
-            )
-            user_attrs = query(
-                f"SELECT x.trial_id, x.key, x.value_json FROM trial_user_attributes x {of_study}"
-            )
-            params = query(
-                "SELECT x.trial_id, x.param_name, x.param_value, x.distribution_json "
-                f"FROM trial_params x {of_study}"
-            )
-            intermediate = query(
-                "SELECT x.trial_id, x.step, x.intermediate_value, x.intermediate_value_type "
-                f"FROM trial_intermediate_values x {of_study}"
-            )
-            study_attrs = query(
-                "SELECT key, value_json FROM study_user_attributes WHERE study_id = :study"
-            )
-    except SQLAlchemyError as e:  # unreachable server, locked or corrupt file
-        raise database_error("cannot read", storage_url, e) from None
-    finally:
-        engine.dispose()
-    return _build_frame(study_name, trials, values, user_attrs, params, intermediate, study_attrs)
+    return _build_frame(study_name, read_rows(storage_url, study_name))
 
 
-def _build_frame(study_name, trials, values, user_attrs, params, intermediate, study_attrs):
-    """Join the raw Optuna tables into the tidy frame of ``load_study_frame``."""
+def _build_frame(study_name: str, raw: StudyRows) -> pd.DataFrame:
+    """Join the raw Optuna tables of ``read_rows`` into the tidy frame of ``load_study_frame``."""
     import numpy as np
     import pandas as pd
     from optuna.distributions import json_to_distribution
+
+    from sweeper.storage import current_numbers
+
+    trials, values, user_attrs = raw.trials, raw.values, raw.user_attrs
+    params, intermediate, study_attrs = raw.params, raw.intermediate, raw.study_attrs
 
     attrs_by_trial: dict[int, dict[str, Any]] = {}
     for trial_id, key, value_json in user_attrs.itertuples(index=False):
@@ -202,9 +154,8 @@ def _build_frame(study_name, trials, values, user_attrs, params, intermediate, s
     for column in ("config_id", "seed", "attempts", "diverged_step"):
         frame[column] = frame[column].astype("Int64")
     frame["auc"] = frame["auc"].astype("float64")
-    # A key's current trial is its highest-numbered one (sweeper.storage.current_trials).
-    latest = frame.groupby("key")["trial"].transform("max")
-    frame["counted"] = frame["key"].notna() & (frame["trial"] == latest)
+    current = set(current_numbers(zip(head["key"], head["trial"], strict=True)).values())
+    frame["counted"] = frame["key"].notna() & frame["trial"].isin(current)
     frame.attrs["study"] = StudyInfo(study_name, study, tuple(metrics), tuple(sorted(searched)))
     return frame
 

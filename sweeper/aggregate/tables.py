@@ -4,7 +4,7 @@ probability of improvement. Statistics and resampling come from ``sweeper.stats`
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any
 
 from sweeper.aggregate.frame import methods_of, scored, stage_frame, study_info, trial_rows
@@ -79,7 +79,7 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
     import pandas as pd
 
     from sweeper.stats import SUMMARIES, several, stratified_bootstrap
-    from sweeper.storage import key_status
+    from sweeper.storage import tally
 
     trials = trial_rows(frame)
     current = trials[trials["counted"]]
@@ -96,13 +96,7 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
     table = []
     for method in methods_of(frame):
         keys = [k for k in planned if k.split("/")[0] == method]
-        row: dict[str, Any] = {"method": method, "planned": len(keys)}
-        row.update(dict.fromkeys(("done", "diverged", "running", "failed", "left"), 0))
-        for key in keys:
-            state, outcome = by_key.get(key, (None, None))
-            status = key_status(state, outcome, driver_alive)
-            row[status] += 1
-            row["diverged"] += status == "done" and outcome == "diverged"
+        row: dict[str, Any] = {"method": method, **asdict(tally(keys, by_key, driver_alive))}
         values = samples.get(method, np.array([]))
         row.update(dict.fromkeys(AUC_COLUMNS), n=values.size)
         if values.size:
@@ -339,7 +333,7 @@ def confirm_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int =
 
     from sweeper.plan import confirm_key
     from sweeper.stats import mean, stratified_bootstrap
-    from sweeper.storage import key_status
+    from sweeper.storage import tally
 
     chosen = study_info(frame).attrs.get("confirm")
     if not chosen:
@@ -363,9 +357,10 @@ def confirm_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int =
             row: dict[str, Any] = {"method": method, "rank": rank, "config_id": int(config_id)}
             row["search_auc"] = float(chosen["search_auc"][method][str(config_id)])
             keys = [confirm_key(method, int(config_id), s) for s in chosen["seeds"]]
-            row.update(dict.fromkeys(("done", "running", "failed", "left"), 0), planned=len(keys))
-            for key in keys:
-                row[key_status(*by_key.get(key, (None, None)), driver_alive)] += 1
+            counts = tally(keys, by_key, driver_alive)
+            row.update(
+                {c: getattr(counts, c) for c in ("planned", "done", "running", "failed", "left")}
+            )
             interval = intervals.get(f"{method}/{config_id}")
             row["n"] = len(samples.get(f"{method}/{config_id}", ()))
             if interval is None:
