@@ -1,35 +1,63 @@
-"""The ``sweeper`` command line. Each subcommand lives in its own module, which provides
-``add_arguments(parser)`` and ``run(args) -> int``; modules are imported only when their
-subcommand runs, so ``sweeper --help`` stays light (no torch, Ray or MuJoCo)."""
+"""The ``sweeper`` command line.
+
+Each subcommand lives in its own module, which provides ``add_arguments(parser)`` (its own
+options) and ``run``. This module alone adds the spec and ``--storage`` arguments and loads
+the spec(s) with ``--storage`` applied (a ``SpecError`` is one line and exit code 2), then
+calls ``run(spec, args)``, ``run(specs, args)`` (a command taking several specs: a list) or
+``run(args)`` (a command taking none). A command module is imported only when its
+subcommand runs, so ``sweeper --help`` stays light (no torch, Ray or MuJoCo).
+"""
 
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from enum import Enum
 
-if TYPE_CHECKING:
-    from sweeper.spec import StudySpec
+from sweeper.spec import SpecError, StudySpec, load_spec
 
-#: subcommand -> (module, one-line help)
-COMMANDS: dict[str, tuple[str, str]] = {
-    "launch": ("sweeper.launch", "run (or resume) a study from a YAML spec"),
-    "confirm": (
+
+class Specs(Enum):
+    """How many study specs a command takes."""
+
+    ONE = "one"
+    MANY = "many"
+    NONE = "none"
+
+
+@dataclass(frozen=True)
+class Command:
+    module: str
+    help: str
+    specs: Specs = Specs.ONE
+
+
+COMMANDS: dict[str, Command] = {
+    "launch": Command("sweeper.launch", "run (or resume) a study from a YAML spec"),
+    "confirm": Command(
         "sweeper.confirm",
         "re-run each method's top-K configurations on fresh seeds (confirmation stage)",
     ),
-    "status": ("sweeper.status", "per-method ledger of a study: done, running, failed, left"),
-    "dashboard": ("sweeper.dashboard", "open optuna-dashboard on a study's storage"),
-    "aggregate": ("sweeper.aggregate", "per-method curves, AUC table, figures and report"),
-    "diagnose": ("sweeper.diagnose", "encoder diagnostics (thesis chapter 5) on an env"),
+    "status": Command(
+        "sweeper.status", "per-method ledger of a study: done, running, failed, left"
+    ),
+    "dashboard": Command("sweeper.dashboard", "open optuna-dashboard on a study's storage"),
+    "aggregate": Command(
+        "sweeper.aggregate", "per-method curves, AUC table, figures and report", Specs.MANY
+    ),
+    "diagnose": Command(
+        "sweeper.diagnose", "encoder diagnostics (thesis chapter 5) on an env", Specs.NONE
+    ),
 }
 
 
-def add_spec_arguments(parser: argparse.ArgumentParser, many: bool = False) -> None:
-    """The arguments every study subcommand takes: the spec file (``many``: one or more, as
-    a list) and a storage override."""
-    if many:
+def _add_spec_arguments(parser: argparse.ArgumentParser, specs: Specs) -> None:
+    """The spec file(s) and the storage override of a command taking ``specs``."""
+    if specs is Specs.NONE:
+        return
+    if specs is Specs.MANY:
         parser.add_argument("spec", nargs="+", help="study specs, YAML files (see studies/)")
     else:
         parser.add_argument("spec", help="the study spec, a YAML file (see studies/)")
@@ -41,15 +69,6 @@ def add_spec_arguments(parser: argparse.ArgumentParser, many: bool = False) -> N
     )
 
 
-def spec_from_args(args: argparse.Namespace, path: str | None = None) -> StudySpec:
-    """The spec named by ``path`` (default ``args.spec``) with ``--storage`` applied;
-    raises ``SpecError``."""
-    from sweeper.spec import load_spec
-
-    spec = load_spec(args.spec if path is None else path)
-    return spec if args.storage is None else spec.with_overrides(storage=args.storage)
-
-
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser; only ``command``'s module is imported to add its arguments."""
     parser = argparse.ArgumentParser(
@@ -57,23 +76,40 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         description="Fair sweeps comparing reward encoders for goal-conditioned RL from images.",
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, (module_name, help_text) in COMMANDS.items():
-        sub = subparsers.add_parser(name, help=help_text, description=help_text)
+    for name, entry in COMMANDS.items():
+        sub = subparsers.add_parser(name, help=entry.help, description=entry.help)
         if name == command:
-            importlib.import_module(module_name).add_arguments(sub)
+            _add_spec_arguments(sub, entry.specs)
+            importlib.import_module(entry.module).add_arguments(sub)
     return parser
+
+
+def _load_specs(args: argparse.Namespace) -> list[StudySpec]:
+    """The specs named on the command line, with ``--storage`` applied; raises SpecError."""
+    paths = [args.spec] if isinstance(args.spec, str) else args.spec
+    specs = [load_spec(path) for path in paths]
+    if args.storage is None:
+        return specs
+    return [spec.with_overrides(storage=args.storage) for spec in specs]
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    command = next((a for a in argv if not a.startswith("-")), None)
-    if command not in COMMANDS:
-        command = None
-    args = build_parser(command).parse_args(argv)
+    name = next((a for a in argv if not a.startswith("-")), None)
+    args = build_parser(name if name in COMMANDS else None).parse_args(argv)
     if args.command is None:
         build_parser().print_help()
         return 2
-    return int(importlib.import_module(COMMANDS[args.command][0]).run(args) or 0)
+    command = COMMANDS[args.command]
+    module = importlib.import_module(command.module)
+    if command.specs is Specs.NONE:
+        return int(module.run(args) or 0)
+    try:
+        specs = _load_specs(args)
+    except SpecError as e:
+        print(f"sweeper {args.command}: {e}", file=sys.stderr)
+        return 2
+    return int(module.run(specs if command.specs is Specs.MANY else specs[0], args) or 0)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ overstates it. This stage re-runs each method's ``K`` best configurations (by se
 the mean over the config's search seeds, ties to the lower config id) on ``N`` fresh seeds
 (``sweeper.plan.fresh_seeds``: after the search's largest), in the same study, as plan keys
 ``confirm/{method}/{config_id}/{seed}`` (trial attr ``stage: "confirm"``). It runs through
-the search's own driver (``sweeper.launch.launch`` with a ``stage``), so its ledger, resume
+the search's own driver (``sweeper.driver.launch`` with a ``stage``), so its ledger, resume
 and failure semantics are the search's: one current trial per key, worker deaths re-run from
 the checkpoint in the same trial, a killed driver's trials re-run by the next ``sweeper
 confirm``, which resumes the stage.
@@ -24,64 +24,65 @@ import argparse
 import functools
 import sys
 from collections.abc import Iterable, Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-if TYPE_CHECKING:
-    from optuna.trial import FrozenTrial
+import optuna
+from optuna.trial import FrozenTrial, TrialState
 
-    from sweeper.plan import Plan
-    from sweeper.spec import StudySpec
-    from sweeper.storage import StudyStore
+from sweeper.driver import EXIT_INTERRUPTED, launch, positive_int, prepare, sigterm_stops
+from sweeper.plan import Plan, build_plan, confirm_plan, fresh_seeds
+from sweeper.spec import SpecError, StudySpec
+from sweeper.storage import (
+    StorageError,
+    StudyStore,
+    current_trials,
+    open_storage,
+    resolve_url,
+    sqlite_path,
+)
 
 #: the study user attr holding the stage's choice
 ATTR = "confirm"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``sweeper confirm``."""
-    from sweeper.cli import add_spec_arguments
-    from sweeper.launch import _positive_int
-
-    add_spec_arguments(parser)
+    """Options of ``sweeper confirm`` (the spec and ``--storage`` come from ``sweeper.cli``)."""
     parser.add_argument(
         "--top-k",
         metavar="K",
-        type=_positive_int,
+        type=positive_int,
         help="configurations per method to re-run (default: the spec's confirm.top_k)",
     )
     parser.add_argument(
         "--seeds",
         metavar="N",
-        type=_positive_int,
+        type=positive_int,
         help="fresh seeds per configuration (default: the spec's confirm.seeds)",
     )
     parser.add_argument("--address", metavar="ADDR", help="as `sweeper launch --address`")
-    parser.add_argument("--max-concurrent", metavar="N", type=_positive_int, help="trials at once")
+    parser.add_argument("--max-concurrent", metavar="N", type=positive_int, help="trials at once")
 
 
-def run(args: argparse.Namespace) -> int:
+def run(spec: StudySpec, args: argparse.Namespace) -> int:
     """``sweeper confirm``: check everything read-only first (exit 2 writes nothing), then
     drive the stage."""
-    from sweeper.launch import prepare
-
-    try:
+    with sigterm_stops():
         try:
-            spec, plan = prepare(args.spec, args.storage, args.address, args.max_concurrent)
-            top_k, seeds = settings(spec, args.top_k, args.seeds)
-            check_study(spec, plan, top_k, seeds)
-        except ValueError as e:  # SpecError, StorageError
-            print(f"sweeper confirm: {e}", file=sys.stderr)
-            return 2
-        return confirm(spec, plan, top_k, seeds)
-    except KeyboardInterrupt:
-        print("\nsweeper confirm: stopped", file=sys.stderr)
-        return 130
+            try:
+                spec, plan = prepare(spec, address=args.address, max_concurrent=args.max_concurrent)
+                top_k, seeds = settings(spec, args.top_k, args.seeds)
+                check_study(spec, plan, top_k, seeds)
+            except ValueError as e:  # SpecError, StorageError
+                print(f"sweeper confirm: {e}", file=sys.stderr)
+                return 2
+            return confirm(spec, plan, top_k, seeds)
+        except KeyboardInterrupt:
+            print("\nsweeper confirm: stopped", file=sys.stderr)
+            return EXIT_INTERRUPTED
 
 
 def settings(spec: StudySpec, top_k: int | None, seeds: int | None) -> tuple[int, int]:
     """``(top_k, seeds)`` from the flags, else the spec's ``confirm`` section."""
-    from sweeper.spec import SpecError
-
     section = spec.confirm
     top_k = top_k if top_k is not None else (section.top_k if section else None)
     seeds = seeds if seeds is not None else (section.seeds if section else None)
@@ -100,8 +101,6 @@ def confirm(
     stream: Any = None,
 ) -> int:
     """Run (or resume) the confirmation stage of ``spec``'s study; the exit code."""
-    from sweeper.launch import launch
-
     stage = functools.partial(confirm_stage, top_k=top_k, seeds=seeds)
     return launch(spec, plan, train=train, stream=stream, stage=stage)
 
@@ -112,10 +111,10 @@ def select(
     """Each method's ``top_k`` config ids by search AUC (the mean over the config's search
     seeds; ties to the lower id) and every config's search AUC. Raises StorageError unless
     every search key is done: an unfinished search would choose among fewer configs."""
-    from sweeper.storage import StorageError, current_trials
-
     current = current_trials(trials)
-    missing = [k for k in search_keys if k not in current or current[k].state.name != "COMPLETE"]
+    missing = [
+        k for k in search_keys if k not in current or current[k].state != TrialState.COMPLETE
+    ]
     if missing:
         raise StorageError(
             f"the search is not finished: {len(missing)} of {len(search_keys)} trials are not "
@@ -143,9 +142,6 @@ def choice(
     """The stage's ``confirm`` attr: the ``stored`` one when it was made with the same
     ``top_k`` and ``seeds`` (never chosen again), else a new choice from the search.
     Raises StorageError for another ``top_k`` or ``seeds`` than the stored ones."""
-    from sweeper.plan import fresh_seeds
-    from sweeper.storage import StorageError
-
     if stored:
         if (stored["top_k"], len(stored["seeds"])) != (top_k, seeds):
             raise StorageError(
@@ -164,11 +160,8 @@ def choice(
 
 
 def confirm_stage(spec: StudySpec, store: StudyStore, *, top_k: int, seeds: int) -> Plan:
-    """The stage's plan, run by the study's driver (``sweeper.launch.Stage``): the choice
+    """The stage's plan, run by the study's driver (``sweeper.driver.Stage``): the choice
     is made (and stored) under the driver's claim, so two drivers never choose twice."""
-    from sweeper.plan import build_plan, confirm_plan
-    from sweeper.storage import StorageError
-
     search = build_plan(spec, study_uid=store.study_uid)
     stored = store.attrs.get(ATTR)
     made = choice(spec, stored, store.trials(), search.keys(), top_k, seeds)
@@ -184,16 +177,6 @@ def confirm_stage(spec: StudySpec, store: StudyStore, *, top_k: int, seeds: int)
 def check_study(spec: StudySpec, plan: Plan, top_k: int, seeds: int) -> None:
     """What ``confirm_stage`` will check, read-only, so a refusal writes nothing: the study
     exists with this search plan, its search is finished, the choice matches a stored one."""
-    import optuna
-
-    from sweeper.storage import (
-        StorageError,
-        StudyStore,
-        open_storage,
-        resolve_url,
-        sqlite_path,
-    )
-
     path = sqlite_path(resolve_url(spec.storage_url))
     if path is not None and not path.is_file():
         raise StorageError(f"storage: no database file at {path}: launch the study first")

@@ -12,18 +12,25 @@ correlation draw (state, goal) pairs from the env's reset (``--start reset``, th
 algorithm) or uniformly from its state box (``--start uniform``); near goals are kept
 unless ``--min-goal-distance`` asks otherwise. Both settings are written into the
 gradient and correlation CSVs and the summary. Every analysis starts from a freshly reset
-env, so the order they run in changes nothing. Heavy imports happen in ``run`` so
-``sweeper --help`` stays light.
+env, so the order they run in changes nothing. ``diagnose_env`` takes the analyses'
+settings as ``Settings``.
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
+import dataclasses
 import math
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from agent.envs import check_env_name, make_env
+from encoders import make_encoder
+from encoders.registry import encoder_class
+from sweeper.frames import env_views
 
 ANALYSES = ("exploration", "gradient", "correlation", "topology", "variance")
 #: envs with an object and an arm that moves alone: the variance analysis runs on these
@@ -38,7 +45,55 @@ class UsageError(ValueError):
     """A bad argument: reported in one line, exit code 2."""
 
 
+@dataclass(frozen=True)
+class Settings:
+    """How much each analysis draws, and where from (the options of ``sweeper diagnose``
+    of the same names). Raises UsageError for a size that cannot be used."""
+
+    seed: int = 0
+    episodes: int = 100  # random-agent episodes
+    gradient_states: int = 50  # Algorithm 1
+    directions: int = 16
+    alpha: float = 0.03
+    start: str = "reset"  # one of START_MODES
+    min_goal_distance: float = 0.0
+    pairs: int = 300  # (state, goal) pairs of the correlation
+    grid_size: int = 15  # topology grid side
+    grid_dims: str | None = None  # two state names or indices; None: the env's first two
+    variance_states: int = 100  # arm-vs-object states (fetch_push only)
+    quiet: bool = False  # no progress lines
+
+    def __post_init__(self) -> None:
+        for name in ("episodes", "gradient_states", "directions", "pairs", "variance_states"):
+            if getattr(self, name) < 1:
+                raise UsageError(f"--{name.replace('_', '-')} must be positive")
+        if self.pairs < 3:
+            raise UsageError("--pairs must be at least 3")
+        if self.grid_size < 5:
+            raise UsageError("--grid-size must be at least 5")
+        if not self.alpha > 0:
+            raise UsageError("--alpha must be positive")
+        if not 0 <= self.min_goal_distance < math.inf:
+            raise UsageError("--min-goal-distance must be finite and at least 0")
+        if self.start not in START_MODES:
+            raise UsageError(f"--start must be one of {', '.join(START_MODES)}")
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> Settings:
+        return cls(**{f.name: getattr(args, f.name) for f in dataclasses.fields(cls)})
+
+    def log(self, message: str) -> None:
+        """A progress line on stderr, unless ``quiet``."""
+        if not self.quiet:
+            print(f"[diagnose] {message}", file=sys.stderr, flush=True)
+
+
+#: the defaults of the options that set ``Settings``
+DEFAULTS = Settings()
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``sweeper diagnose`` (it takes no spec)."""
     parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
     parser.epilog = "Writes one CSV and PNG per analysis and summary.csv per env."
     parser.add_argument("--env", required=True, help="env name(s), comma-separated")
@@ -59,17 +114,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", default="runs/diagnostics/{env}", help="output directory; {env} is the env name"
     )
     parser.add_argument("--image-size", type=int, default=None, help="default: the env's")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=DEFAULTS.seed)
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    parser.add_argument("--episodes", type=int, default=100, help="random-agent episodes")
-    parser.add_argument("--gradient-states", type=int, default=50, help="Algorithm 1 states")
-    parser.add_argument("--directions", type=int, default=16, help="Algorithm 1 directions")
-    parser.add_argument("--alpha", type=float, default=0.03, help="Algorithm 1 step size")
+    parser.add_argument(
+        "--episodes", type=int, default=DEFAULTS.episodes, help="random-agent episodes"
+    )
+    parser.add_argument(
+        "--gradient-states", type=int, default=DEFAULTS.gradient_states, help="Algorithm 1 states"
+    )
+    parser.add_argument(
+        "--directions", type=int, default=DEFAULTS.directions, help="Algorithm 1 directions"
+    )
+    parser.add_argument("--alpha", type=float, default=DEFAULTS.alpha, help="Algorithm 1 step size")
     parser.add_argument(
         "--start",
         choices=START_MODES,
-        default="reset",
+        default=DEFAULTS.start,
         help="where Algorithm 1 and the correlation draw (state, goal) pairs: reset = the "
         "env's reset (its start and goal distributions, as Algorithm 1 says); uniform = both "
         "uniform in the env's state box",
@@ -77,17 +138,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--min-goal-distance",
         type=float,
-        default=0.0,
+        default=DEFAULTS.min_goal_distance,
         help="Algorithm 1: redraw pairs whose goal is closer than this to the start (0: keep "
         "every pair); recorded in gradient.csv and summary.csv when used",
     )
-    parser.add_argument("--pairs", type=int, default=300, help="(state, goal) pairs")
-    parser.add_argument("--grid-size", type=int, default=15, help="topology grid side")
+    parser.add_argument("--pairs", type=int, default=DEFAULTS.pairs, help="(state, goal) pairs")
+    parser.add_argument(
+        "--grid-size", type=int, default=DEFAULTS.grid_size, help="topology grid side"
+    )
     parser.add_argument(
         "--grid-dims", default=None, help="two state names or indices (default: first two)"
     )
     parser.add_argument(
-        "--variance-states", type=int, default=100, help="arm-vs-object states (fetch_push only)"
+        "--variance-states",
+        type=int,
+        default=DEFAULTS.variance_states,
+        help="arm-vs-object states (fetch_push only)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
@@ -140,28 +206,12 @@ def grid_dims(text: str | None, state_names: tuple[str, ...]) -> tuple[int, int]
     return indices[0], indices[1]
 
 
-def check_sizes(args: argparse.Namespace) -> None:
-    """Every size option must be usable before any work starts."""
-    for name in ("episodes", "gradient_states", "directions", "pairs", "variance_states"):
-        if getattr(args, name) < 1:
-            raise UsageError(f"--{name.replace('_', '-')} must be positive")
-    if args.pairs < 3:
-        raise UsageError("--pairs must be at least 3")
-    if args.grid_size < 5:
-        raise UsageError("--grid-size must be at least 5")
-    if not args.alpha > 0:
-        raise UsageError("--alpha must be positive")
-    if not 0 <= args.min_goal_distance < math.inf:
-        raise UsageError("--min-goal-distance must be finite and at least 0")
-
-
-def setup(args: argparse.Namespace) -> tuple[list[str], list[tuple[str, Any, dict, Path]]]:
-    """Validate everything before any work: (analyses, [(env name, env, encoders, out dir)])."""
-    from agent.envs import check_env_name, make_env
-    from encoders import make_encoder
-    from encoders.registry import encoder_class
-
-    check_sizes(args)
+def setup(
+    args: argparse.Namespace,
+) -> tuple[Settings, list[str], list[tuple[str, Any, dict, Path]]]:
+    """Validate everything before any work: (settings, analyses, [(env name, env, encoders,
+    out dir)])."""
+    settings = Settings.from_args(args)
     envs = split(args.env, "--env")
     names = split(args.encoders, "--encoders")
     analyses = split(args.analyses, "--analyses")
@@ -189,7 +239,7 @@ def setup(args: argparse.Namespace) -> tuple[list[str], list[tuple[str, Any, dic
     except ValueError:
         close_all(built)
         raise
-    return analyses, built
+    return settings, analyses, built
 
 
 def out_dir(template: str, env_name: str, num_envs: int) -> Path:
@@ -205,7 +255,7 @@ def close_all(built: list[tuple[str, Any, dict[str, Any], Path]]) -> None:
 
 
 def diagnose_env(
-    args: argparse.Namespace,
+    settings: Settings,
     analyses: list[str],
     env_name: str,
     env: Any,
@@ -213,23 +263,24 @@ def diagnose_env(
     out: Path,
 ) -> list[Any]:
     """Fit the learned encoders, run the analyses, write CSV + PNG; return summary frames."""
+    # pandas, scipy, scikit-learn and matplotlib load only when an env is diagnosed, so
+    # `sweeper diagnose --help` stays light
     import pandas as pd
 
     from encoders import diagnostics as dx
     from encoders.diagnostics import plots
-    from sweeper.frames import env_views
 
-    progress = not args.quiet
+    progress = not settings.quiet
     out.mkdir(parents=True, exist_ok=True)
     # what the encoders see: the camera view after a few resets beside their goal images
-    env_views(env_name, out / "views.png", image_size=env.image_size, seed=args.seed)
+    env_views(env_name, out / "views.png", image_size=env.image_size, seed=settings.seed)
     frames: dict[int, Any] = {}  # by count: VAE and CVAE share their frames
     for name, encoder in encoders.items():
         if encoder.needs_fit:
             n = encoder.num_images
             if n not in frames:
-                frames[n] = dx.random_frames(env, n, args.seed, progress)
-            log(args, f"{env_name}: fitting {name} on {n} random-policy frames")
+                frames[n] = dx.random_frames(env, n, settings.seed, progress)
+            settings.log(f"{env_name}: fitting {name} on {n} random-policy frames")
             encoder.fit(frames[n], progress=progress)
 
     def write(table: pd.DataFrame, stem: str) -> pd.DataFrame:
@@ -242,7 +293,7 @@ def diagnose_env(
     todo = analyses
     if "exploration" in todo:
         t = write(
-            dx.random_exploration(env, args.episodes, seed=args.seed, progress=progress),
+            dx.random_exploration(env, settings.episodes, seed=settings.seed, progress=progress),
             "exploration",
         )
         plots.plot_exploration(t, out / "exploration.png", f"{env_name}: random agent")
@@ -251,39 +302,44 @@ def diagnose_env(
         t = dx.gradient_agreement(
             env,
             encoders,
-            args.gradient_states,
-            args.directions,
-            args.alpha,
-            seed=args.seed,
-            start=args.start,
-            min_goal_distance=args.min_goal_distance,
+            settings.gradient_states,
+            settings.directions,
+            settings.alpha,
+            seed=settings.seed,
+            start=settings.start,
+            min_goal_distance=settings.min_goal_distance,
             progress=progress,
         )
-        write(t.assign(start=args.start), "gradient")
+        write(t.assign(start=settings.start), "gradient")
         plots.plot_gradient(
             t,
             out / "gradient.png",
-            f"{env_name}: latent vs true reward gradient (Algorithm 1, start {args.start})",
+            f"{env_name}: latent vs true reward gradient (Algorithm 1, start {settings.start})",
         )
-        s = dx.gradient_summary(t).assign(env=env_name, analysis="gradient", start=args.start)
+        s = dx.gradient_summary(t).assign(env=env_name, analysis="gradient", start=settings.start)
         summary.append(s)
     if "correlation" in todo:
         s, pairs = dx.reward_correlation(
-            env, encoders, args.pairs, seed=args.seed, start=args.start, progress=progress
+            env,
+            encoders,
+            settings.pairs,
+            seed=settings.seed,
+            start=settings.start,
+            progress=progress,
         )
-        s = write(s.assign(start=args.start), "correlation")
-        pairs = write(pairs.assign(start=args.start), "correlation_pairs")
+        s = write(s.assign(start=settings.start), "correlation")
+        pairs = write(pairs.assign(start=settings.start), "correlation_pairs")
         plots.plot_correlation(
             pairs,
             s,
             out / "correlation.png",
-            f"{env_name}: latent vs true reward, start {args.start}",
+            f"{env_name}: latent vs true reward, start {settings.start}",
         )
         summary.append(s.assign(analysis="correlation"))
     if "topology" in todo:
-        dims = grid_dims(args.grid_dims, tuple(env.state_names))
+        dims = grid_dims(settings.grid_dims, tuple(env.state_names))
         s, emb = dx.grid_topology(
-            env, encoders, args.grid_size, dims, seed=args.seed, progress=progress
+            env, encoders, settings.grid_size, dims, seed=settings.seed, progress=progress
         )
         s, emb = write(s, "topology"), write(emb, "topology_embedding")
         a, b = dims or dx.default_grid_dims(env)
@@ -291,16 +347,18 @@ def diagnose_env(
         plots.plot_topology(
             emb,
             out / "topology.png",
-            f"{env_name}: isomap of a {args.grid_size}x{args.grid_size} state grid",
+            f"{env_name}: isomap of a {settings.grid_size}x{settings.grid_size} state grid",
             labels,
         )
         summary.append(s.assign(analysis="topology"))
     if "variance" in todo and env_name not in ARM_OBJECT_ENVS:
-        log(args, f"{env_name}: the variance analysis is for {', '.join(ARM_OBJECT_ENVS)}; skipped")
+        settings.log(
+            f"{env_name}: the variance analysis is for {', '.join(ARM_OBJECT_ENVS)}; skipped"
+        )
     elif "variance" in todo:
         t = write(
             dx.arm_object_variance(
-                env, encoders, args.variance_states, seed=args.seed, progress=progress
+                env, encoders, settings.variance_states, seed=settings.seed, progress=progress
             ),
             "variance",
         )
@@ -311,12 +369,9 @@ def diagnose_env(
     return summary
 
 
-def log(args: argparse.Namespace, message: str) -> None:
-    if not args.quiet:
-        print(f"[diagnose] {message}", file=sys.stderr, flush=True)
-
-
 def run(args: argparse.Namespace) -> int:
+    """``sweeper diagnose``: exit 0, or 2 with a one-line message on a bad argument."""
+    # torch and pandas load only when the command runs, so `sweeper diagnose --help` stays light
     import pandas as pd
     import torch
 
@@ -324,13 +379,13 @@ def run(args: argparse.Namespace) -> int:
         if args.threads < 1:
             raise UsageError("--threads must be positive")
         torch.set_num_threads(args.threads)
-        analyses, built = setup(args)
+        settings, analyses, built = setup(args)
     except ValueError as err:
         print(f"sweeper diagnose: error: {err}", file=sys.stderr)
         return 2
     try:
         for env_name, env, encoders, out in built:
-            frames = diagnose_env(args, analyses, env_name, env, encoders, out)
+            frames = diagnose_env(settings, analyses, env_name, env, encoders, out)
             print(f"{env_name}: wrote {out}/")
             if frames:
                 summary = pd.concat(frames, ignore_index=True)

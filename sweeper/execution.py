@@ -14,6 +14,7 @@ import contextlib
 import inspect
 import os
 import re
+import signal
 import socket
 import threading
 import time
@@ -23,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import ray
+from ray._private import ray_constants
 
 #: Ray's switch between cluster mode (listen on every interface) and a single machine
 LOOPBACK_VARIABLE = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
@@ -37,13 +39,14 @@ def start_ray(address: str | None, num_cpus: int | None = None) -> bool:
     ``ray.init()`` would attach to whatever cluster a stale /tmp/ray file names) that
     listens on 127.0.0.1 only and exports no metrics unless ``RAY_enable_metrics_collection``
     says so. An already initialised Ray (e.g. in a notebook or a test) is used as it is.
+    This process's SIGTERM handler is the same after the call (``_keep_sigterm``).
     """
     if ray.is_initialized():
         return False
     common = {"log_to_driver": False, "logging_level": "WARNING"}
     if address is None:
         metrics = {} if METRICS_VARIABLE in os.environ else {"enable_metrics_collection": False}
-        with _loopback_only():
+        with _loopback_only(), _keep_sigterm():
             ray.init(
                 address="local",
                 num_cpus=num_cpus,
@@ -54,8 +57,30 @@ def start_ray(address: str | None, num_cpus: int | None = None) -> bool:
             )
     else:
         _check_reachable(address)
-        ray.init(address=address, **common)
+        with _keep_sigterm():
+            ray.init(address=address, **common)
     return True
+
+
+@contextlib.contextmanager
+def _keep_sigterm() -> Iterator[None]:
+    """Give this process its SIGTERM handler back after ``ray.init``, which sets its own:
+    Python ones that exit (status 15 or 1: a SIGTERM while Ray starts raises SystemExit),
+    and, in its core worker, a C++ failure handler that prints a stack dump and may abort.
+    That one is not installed in this process at all (Ray reads the switch when it creates
+    the core worker; the processes Ray starts keep theirs), so a SIGTERM at any moment
+    reaches the caller's handler or SystemExit. The cost: no C++ stack dump if the
+    driver's own core worker crashes.
+    """
+    saved = ray_constants.RAY_DISABLE_FAILURE_SIGNAL_HANDLER
+    handler = signal.getsignal(signal.SIGTERM)
+    ray_constants.RAY_DISABLE_FAILURE_SIGNAL_HANDLER = True
+    try:
+        yield
+    finally:
+        ray_constants.RAY_DISABLE_FAILURE_SIGNAL_HANDLER = saved
+        if handler is not None and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, handler)
 
 
 @contextlib.contextmanager
@@ -68,8 +93,6 @@ def _loopback_only() -> Iterator[None]:
     this one when it imported ray (then copied into ``ray_constants``), so both are set
     while Ray starts; its processes keep it, this one gets its own values back.
     """
-    from ray._private import ray_constants
-
     saved = os.environ.get(LOOPBACK_VARIABLE), ray_constants.ENABLE_RAY_CLUSTER
     os.environ[LOOPBACK_VARIABLE] = "0"
     ray_constants.ENABLE_RAY_CLUSTER = False

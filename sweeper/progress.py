@@ -12,8 +12,20 @@ import sys
 import time
 from typing import TextIO
 
-#: states a key can be in during a launch
-STATES = ("left", "running", "completed", "diverged", "failed")
+from agent.config import Outcome
+from sweeper.storage import KeyStatus
+
+#: what a key can be during a launch: left or running, then how its trial ended
+State = KeyStatus | Outcome
+STATES: tuple[State, ...] = (
+    KeyStatus.LEFT,
+    KeyStatus.RUNNING,
+    Outcome.COMPLETED,
+    Outcome.DIVERGED,
+    Outcome.FAILED,
+)
+#: the states of a key whose trial is recorded with a result
+DONE = (Outcome.COMPLETED, Outcome.DIVERGED)
 
 
 def format_seconds(seconds: float) -> str:
@@ -27,8 +39,9 @@ def format_count(n: float) -> str:
     return f"{n / 1000:.1f}k" if n >= 1000 else f"{n:.0f}"
 
 
-class Progress:
-    """Tracks the state and env step of every plan key and draws them on ``stream``."""
+class LaunchProgress:
+    """The progress of a launch: tracks the state and env step of every plan key and draws
+    them on ``stream``."""
 
     def __init__(
         self,
@@ -46,18 +59,19 @@ class Progress:
         self.stream = sys.stderr if stream is None else stream
         self.tty = self.stream.isatty() if tty is None else tty
         self.interval = interval if self.tty else log_interval
-        self.states = dict.fromkeys(keys, "completed")  # the launch marks the rest
+        # the launch marks the keys it runs; the others were done before it
+        self.states: dict[str, State] = dict.fromkeys(keys, Outcome.COMPLETED)
         self.steps: dict[str, int] = {}
         self._start: tuple[float, float] | None = None  # (time, work) when the launch began
         self._last_draw = -float("inf")
         self._drawn_lines = 0
 
-    def set_state(self, key: str, state: str) -> None:
+    def set_state(self, key: str, state: State) -> None:
         """Move ``key`` to one of ``STATES``."""
         if state not in STATES:
-            raise ValueError(f"state must be one of {STATES}, got {state!r}")
-        self.states[key] = state
-        if state == "left":
+            raise ValueError(f"state must be one of {tuple(map(str, STATES))}, got {state!r}")
+        self.states[key] = STATES[STATES.index(state)]
+        if state == KeyStatus.LEFT:
             self.steps.pop(key, None)
 
     def set_step(self, key: str, step: int) -> None:
@@ -68,9 +82,9 @@ class Progress:
         """Env steps done so far, over all keys."""
         total = 0.0
         for key, state in self.states.items():
-            if state == "running":
+            if state == KeyStatus.RUNNING:
                 total += self.steps.get(key, 0)
-            elif state != "left":
+            elif state != KeyStatus.LEFT:
                 total += self.env_steps
         return total
 
@@ -91,14 +105,14 @@ class Progress:
         for key, state in self.states.items():
             counts[state] += 1
             line = methods.setdefault(key.split("/")[0], [0, 0])
-            line[0] += state in ("completed", "diverged")
+            line[0] += state in DONE
             line[1] += 1
-        done = counts["completed"] + counts["diverged"]
+        done = sum(counts[state] for state in DONE)
         rate, eta = self.eta(now)
         summary = f"{self.study}: {done}/{len(self.states)} trials done"
-        if counts["diverged"]:
-            summary += f" ({counts['diverged']} diverged)"
-        summary += f", {counts['running']} running, {counts['failed']} failed"
+        if counts[Outcome.DIVERGED]:
+            summary += f" ({counts[Outcome.DIVERGED]} diverged)"
+        summary += f", {counts[KeyStatus.RUNNING]} running, {counts[Outcome.FAILED]} failed"
         summary += f" | {format_count(rate)} env steps/s"
         summary += f" | ETA {format_seconds(eta) if eta is not None else '?'}"
         lines = [summary]
@@ -107,7 +121,7 @@ class Progress:
             running = [
                 f"{key.split('/', 1)[1]} @ {format_count(self.steps.get(key, 0))}"
                 for key, state in self.states.items()
-                if state == "running" and key.split("/")[0] == method
+                if state == KeyStatus.RUNNING and key.split("/")[0] == method
             ]
             text = f"  {method:<{width}}  {method_done}/{total} done"
             if running:

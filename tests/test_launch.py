@@ -18,7 +18,7 @@ from optuna.trial import TrialState
 from agent.config import TrialResult
 from agent.metrics import normalized_auc
 from sweeper import cli
-from sweeper.launch import launch, prepare
+from sweeper.driver import launch, prepare
 from sweeper.storage import StudyStore, open_storage
 
 GRID = [0, 100, 200, 300]  # studies/ci.yaml: env_steps 300, eval_every 100
@@ -292,12 +292,12 @@ def test_more_torch_threads_than_cpus_is_refused_with_the_fix(tmp_path):
 def test_progress_display():
     import io
 
-    from sweeper.progress import Progress, format_seconds
+    from sweeper.progress import LaunchProgress, format_seconds
 
     assert format_seconds(3725) == "1:02:05"
     keys = ["pixel/0/0", "pixel/1/0", "vae/0/0", "vae/1/0"]
     stream = io.StringIO()
-    progress = Progress("s", keys, env_steps=1000, stream=stream, tty=True)
+    progress = LaunchProgress("s", keys, env_steps=1000, stream=stream, tty=True)
     for key in keys[1:]:
         progress.set_state(key, "left")  # pixel/0/0 was done before this launch
     progress.eta(now=0.0)  # the clock starts: 1000 steps done
@@ -316,7 +316,7 @@ def test_progress_display():
     progress.refresh(force=True)  # redrawn in place: cursor up 3 lines, clear
     assert stream.getvalue().count("\x1b[3F\x1b[J") == 1
     plain = io.StringIO()
-    progress = Progress("s", keys, env_steps=1000, stream=plain, tty=False)
+    progress = LaunchProgress("s", keys, env_steps=1000, stream=plain, tty=False)
     progress.refresh(force=True)
     progress.note("pixel/0/0 completed")
     assert "\x1b" not in plain.getvalue()
@@ -377,7 +377,7 @@ def test_a_local_ray_listens_on_the_loopback_only_without_metrics():
 
 
 def test_a_refused_connection_names_token_authentication(monkeypatch):
-    from sweeper.launch import cannot_reach_message
+    from sweeper.driver import cannot_reach_message
 
     refused = ConnectionError("Failed to connect to Ray cluster at 10.0.0.1:6379")
     monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
