@@ -26,7 +26,6 @@ import sys
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
-import optuna
 from optuna.trial import FrozenTrial, TrialState
 
 from sweeper.driver import EXIT_INTERRUPTED, launch, positive_int, prepare, sigterm_stops
@@ -36,10 +35,8 @@ from sweeper.storage import (
     StorageError,
     StudyStore,
     current_trials,
-    open_storage,
-    resolve_url,
-    sqlite_path,
 )
+from sweeper.study import open_study
 
 #: the study user attr holding the stage's choice
 ATTR = "confirm"
@@ -177,21 +174,5 @@ def confirm_stage(spec: StudySpec, store: StudyStore, *, top_k: int, seeds: int)
 def check_study(spec: StudySpec, plan: Plan, top_k: int, seeds: int) -> None:
     """What ``confirm_stage`` will check, read-only, so a refusal writes nothing: the study
     exists with this search plan, its search is finished, the choice matches a stored one."""
-    path = sqlite_path(resolve_url(spec.storage_url))
-    if path is not None and not path.is_file():
-        raise StorageError(f"storage: no database file at {path}: launch the study first")
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    storage = open_storage(spec.storage_url, create=False)
-    try:
-        store = StudyStore.find(storage, spec.study)
-        if store is None:
-            raise StorageError(f"study {spec.study!r} not found: launch it first")
-        attrs = store.attrs
-        if attrs.get("plan_hash") != plan.hash:
-            raise StorageError(
-                f"study {spec.study!r} was launched with another plan: the spec changed"
-            )
-        choice(spec, attrs.get(ATTR), store.trials(), plan.keys(), top_k, seeds)
-    finally:
-        storage.remove_session()
-        storage.engine.dispose()
+    with open_study(spec.storage_url, spec.study, write=False, plan_hash=plan.hash) as store:
+        choice(spec, store.attrs.get(ATTR), store.trials(), plan.keys(), top_k, seeds)

@@ -70,12 +70,12 @@ from sweeper.storage import (
     check_storage,
     code_revision,
     json_safe,
-    open_storage,
     package_versions,
     redact,
     resolve_url,
     sqlite_path,
 )
+from sweeper.study import open_study
 
 #: what a driver runs once it holds the study: its plan, bound to the study
 Stage = Callable[[StudySpec, StudyStore], Plan]
@@ -322,34 +322,36 @@ def _run_study(
     """Open the study as its driver, its heartbeat beating until it lets go; run it."""
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     attrs = study_attrs(spec, plan)
-    storage = open_storage(spec.storage_url)
+    grace = spec.execution.storage_grace
     try:
-        try:
-            store = StudyStore.open_or_create(storage, spec.study, attrs)
-            store.claim_driver()
-        except (StorageError, StudyBusy) as e:
-            print(f"sweeper launch: {e}", file=stream)
-            return 2 if isinstance(e, StorageError) else EXIT_BUSY
-        try:
-            with store.heartbeats(HEARTBEAT_SECONDS) as beat:
-                if store.attrs.get("revision") != attrs["revision"]:
-                    print(
-                        f"sweeper launch: note: the study began at code revision "
-                        f"{store.attrs.get('revision')}; this is {attrs['revision']}",
-                        file=stream,
-                    )
-                return _sync_and_drive(spec, store, pool, beat, stream, stage)
-        except StorageError as e:  # the stage cannot be run (sweeper confirm)
-            print(f"sweeper {'launch' if stage is None else 'confirm'}: {e}", file=stream)
-            return 2
-        except StudyBusy as e:  # a heartbeat found another driver: this one looked dead
-            print(f"sweeper launch: stopped: {e}", file=stream)
-            return EXIT_BUSY
-        finally:
-            store.release_driver()
-    finally:
-        storage.remove_session()
-        storage.engine.dispose()
+        with open_study(
+            spec.storage_url, spec.study, write=True, attrs=attrs, grace=grace
+        ) as store:
+            try:
+                store.claim_driver()
+            except StudyBusy as e:
+                print(f"sweeper launch: {e}", file=stream)
+                return EXIT_BUSY
+            try:
+                with store.heartbeats(HEARTBEAT_SECONDS) as beat:
+                    if store.attrs.get("revision") != attrs["revision"]:
+                        print(
+                            f"sweeper launch: note: the study began at code revision "
+                            f"{store.attrs.get('revision')}; this is {attrs['revision']}",
+                            file=stream,
+                        )
+                    return _sync_and_drive(spec, store, pool, beat, stream, stage)
+            except StorageError as e:  # the stage cannot be run (sweeper confirm)
+                print(f"sweeper {'launch' if stage is None else 'confirm'}: {e}", file=stream)
+                return 2
+            except StudyBusy as e:  # a heartbeat found another driver: this one looked dead
+                print(f"sweeper launch: stopped: {e}", file=stream)
+                return EXIT_BUSY
+            finally:
+                store.release_driver()
+    except StorageError as e:  # opening or creating the study
+        print(f"sweeper launch: {e}", file=stream)
+        return 2
 
 
 def _sync_and_drive(

@@ -38,7 +38,7 @@ if TYPE_CHECKING:  # pandas and sqlalchemy are imported where used: `sweeper --h
     from sqlalchemy.engine import Connection
 
 #: how a study comes to be, for the messages of ``NoStudy``
-CREATE_HINT = "create it with `sweeper launch SPEC`"
+CREATE_HINT = "launch the study first (`sweeper launch SPEC`)"
 
 
 class NoStudy(StorageError):
