@@ -265,10 +265,8 @@ def diagnose_env(
     """Fit the learned encoders, run the analyses, write CSV + PNG; return summary frames."""
     # pandas, scipy, scikit-learn and matplotlib load only when an env is diagnosed, so
     # `sweeper diagnose --help` stays light
-    import pandas as pd
-
     from encoders import diagnostics as dx
-    from encoders.diagnostics import plots
+    from sweeper.analyses import RUNNERS, Target
 
     progress = not settings.quiet
     out.mkdir(parents=True, exist_ok=True)
@@ -282,91 +280,9 @@ def diagnose_env(
                 frames[n] = dx.random_frames(env, n, settings.seed, progress)
             settings.log(f"{env_name}: fitting {name} on {n} random-policy frames")
             encoder.fit(frames[n], progress=progress)
-
-    def write(table: pd.DataFrame, stem: str) -> pd.DataFrame:
-        table = table.copy()
-        table.insert(0, "env", env_name)
-        table.to_csv(out / f"{stem}.csv", index=False)
-        return table
-
-    summary = []
-    todo = analyses
-    if "exploration" in todo:
-        t = write(
-            dx.random_exploration(env, settings.episodes, seed=settings.seed, progress=progress),
-            "exploration",
-        )
-        plots.plot_exploration(t, out / "exploration.png", f"{env_name}: random agent")
-        summary.append(t.assign(analysis="exploration"))
-    if "gradient" in todo:
-        t = dx.gradient_agreement(
-            env,
-            encoders,
-            settings.gradient_states,
-            settings.directions,
-            settings.alpha,
-            seed=settings.seed,
-            start=settings.start,
-            min_goal_distance=settings.min_goal_distance,
-            progress=progress,
-        )
-        write(t.assign(start=settings.start), "gradient")
-        plots.plot_gradient(
-            t,
-            out / "gradient.png",
-            f"{env_name}: latent vs true reward gradient (Algorithm 1, start {settings.start})",
-        )
-        s = dx.gradient_summary(t).assign(env=env_name, analysis="gradient", start=settings.start)
-        summary.append(s)
-    if "correlation" in todo:
-        s, pairs = dx.reward_correlation(
-            env,
-            encoders,
-            settings.pairs,
-            seed=settings.seed,
-            start=settings.start,
-            progress=progress,
-        )
-        s = write(s.assign(start=settings.start), "correlation")
-        pairs = write(pairs.assign(start=settings.start), "correlation_pairs")
-        plots.plot_correlation(
-            pairs,
-            s,
-            out / "correlation.png",
-            f"{env_name}: latent vs true reward, start {settings.start}",
-        )
-        summary.append(s.assign(analysis="correlation"))
-    if "topology" in todo:
-        dims = grid_dims(settings.grid_dims, tuple(env.state_names))
-        s, emb = dx.grid_topology(
-            env, encoders, settings.grid_size, dims, seed=settings.seed, progress=progress
-        )
-        s, emb = write(s, "topology"), write(emb, "topology_embedding")
-        a, b = dims or dx.default_grid_dims(env)
-        labels = (env.state_names[a], env.state_names[b])
-        plots.plot_topology(
-            emb,
-            out / "topology.png",
-            f"{env_name}: isomap of a {settings.grid_size}x{settings.grid_size} state grid",
-            labels,
-        )
-        summary.append(s.assign(analysis="topology"))
-    if "variance" in todo and env_name not in ARM_OBJECT_ENVS:
-        settings.log(
-            f"{env_name}: the variance analysis is for {', '.join(ARM_OBJECT_ENVS)}; skipped"
-        )
-    elif "variance" in todo:
-        t = write(
-            dx.arm_object_variance(
-                env, encoders, settings.variance_states, seed=settings.seed, progress=progress
-            ),
-            "variance",
-        )
-        plots.plot_variance(
-            t, out / "variance.png", f"{env_name}: latent variance, arm moving vs object moving"
-        )
-        summary.append(t[t["dim"] < 0].drop(columns="dim").assign(analysis="variance"))
-    return summary
+    target = Target(env_name, env, encoders, out)
+    summaries = (run(settings, target) for a, run in RUNNERS.items() if a in analyses)
+    return [summary for summary in summaries if summary is not None]
 
 
 def run(args: argparse.Namespace) -> int:

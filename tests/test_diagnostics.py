@@ -430,3 +430,9 @@ def test_other_analyses_do_not_depend_on_an_earlier_exploration(fetch_push_envs,
     env = fetch_push_envs()
     move_the_arm(env)
     pd.testing.assert_frame_equal(analysis(env, encoders), alone, check_exact=True)
+
+
+def test_every_analysis_the_command_offers_has_a_runner_in_order() -> None:
+    from sweeper import analyses, diagnose
+
+    assert tuple(analyses.RUNNERS) == diagnose.ANALYSES
