@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import io
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 import threading
@@ -22,7 +24,8 @@ from conftest import wait_until, write_ci_spec
 from optuna.trial import TrialState
 
 from agent import train
-from sweeper.launch import launch, prepare
+from agent.config import TrialResult
+from sweeper.driver import launch, prepare
 from sweeper.storage import open_storage
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -204,7 +207,7 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, loca
 RACER = """
 import sys, time
 from agent.config import TrialResult
-from sweeper.launch import launch, prepare
+from sweeper.driver import launch, prepare
 from sweeper.storage import StudyStore
 
 spec_path, release = sys.argv[1], float(sys.argv[2])
@@ -339,7 +342,7 @@ import sys, time, zlib
 from pathlib import Path
 from agent.config import TrialResult
 from sweeper.confirm import confirm
-from sweeper.launch import launch, prepare
+from sweeper.driver import launch, prepare
 
 spec_path, address, stage = sys.argv[1], sys.argv[2], sys.argv[3]
 
@@ -456,3 +459,43 @@ def test_confirm_stage_ledger_is_exact_under_a_worker_kill_and_a_driver_relaunch
         successor = trials[trials[number].user_attrs["superseded_by"]]
         assert successor.user_attrs["key"] == trials[number].user_attrs["key"]
         assert successor.state == TrialState.COMPLETE
+
+
+def instant(config, report=None):
+    """A trial that reports once and finishes at once."""
+    report(0, {"success_rate": 0.0, "final_distance": 1.0})
+    metrics = {"success_rate": (0.0, 1.0), "final_distance": (1.0, 0.0)}
+    return TrialResult(steps=(0, config.total_steps), metrics=metrics, auc=0.5)
+
+
+def disk_full(connection, cursor, statement, *args):
+    """An SQLite engine hook: recording a trial's value fails as on a full disk."""
+    if statement.lstrip().upper().startswith("INSERT INTO TRIAL_VALUES"):
+        raise sqlite3.OperationalError("database or disk is full")
+
+
+@pytest.mark.slow
+def test_a_full_disk_mid_launch_exits_2_with_one_line_and_a_relaunch_finishes(tmp_path, local_ray):
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    spec_path = write_ci_spec(
+        tmp_path / "spec.yaml",
+        study="full",
+        storage=url,
+        checkpoints=str(tmp_path / "checkpoints"),
+        execution={"address": local_ray},
+    )
+    spec, plan = prepare(str(spec_path))
+    stream = io.StringIO()
+    sqlalchemy.event.listen(sqlalchemy.engine.Engine, "before_cursor_execute", disk_full)
+    try:
+        code = launch(spec, plan, train=instant, stream=stream)
+    finally:
+        sqlalchemy.event.remove(sqlalchemy.engine.Engine, "before_cursor_execute", disk_full)
+    assert code == 2
+    errors = [line for line in stream.getvalue().splitlines() if "disk is full" in line]
+    assert len(errors) == 1 and errors[0].startswith("sweeper launch: "), stream.getvalue()
+    assert "free space" in errors[0]
+    assert not [t for t in trials_of(url, "full") if t.state == TrialState.COMPLETE]
+
+    assert launch(spec, plan, train=instant, stream=io.StringIO()) == 0  # nothing was lost
+    check_exact_budget(trials_of(url, "full"), plan.keys())
