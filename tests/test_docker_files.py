@@ -14,11 +14,11 @@ import signal
 import sqlite3
 import subprocess
 import sys
-import time
 import zipfile
 from pathlib import Path
 
 import pytest
+from conftest import wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 DOCKER = REPO / "docker"
@@ -357,10 +357,7 @@ def test_stopping_launch_reaches_sweeper_then_leaves_the_cluster(config, tmp_pat
         [*entrypoint(config, "launch"), "studies/ci.yaml"], env=launch_env(config, tmp_path)
     )
     try:
-        deadline = time.monotonic() + 10
-        while not started.exists():
-            assert time.monotonic() < deadline, "the sweeper stand-in never started"
-            time.sleep(0.02)
+        wait_until(started.exists, 10, "the sweeper stand-in to start", interval=0.02)
         shell.send_signal(getattr(signal, signal_name))
         assert shell.wait(timeout=10) == 130
     finally:
