@@ -35,6 +35,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import pandas as pd
+
 # Each module imports pandas, matplotlib, optuna and plotly where used, so that importing
 # the package (``sweeper --help``) stays light.
 from sweeper.aggregate.dashboard import (
@@ -68,12 +70,11 @@ from sweeper.aggregate.tables import (
     profile_table,
     study_tables,
 )
+from sweeper.artifacts import artifact_location
 from sweeper.storage import StorageError, is_database_error, reason_of
 from sweeper.study import open_study
 
 if TYPE_CHECKING:
-    import pandas as pd
-
     from sweeper.spec import StudySpec
 
 __all__ = [
@@ -131,7 +132,6 @@ def run(specs: list[StudySpec], args: argparse.Namespace) -> int:
     the studies (``sweeper.aggregate.combined``), with the first spec's seed.
     """
     from sweeper.aggregate.combined import aggregate_studies
-    from sweeper.artifacts import artifact_location
 
     try:
         if len(specs) == 1:

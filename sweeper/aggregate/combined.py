@@ -24,7 +24,9 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
+
+import pandas as pd
 
 from sweeper.aggregate.frame import load_study_frame, methods_of, stage_frame, study_info
 from sweeper.aggregate.normalize import (
@@ -42,9 +44,8 @@ from sweeper.aggregate.tables import (
     improvement_table,
     profile_frame,
 )
-
-if TYPE_CHECKING:
-    import pandas as pd
+from sweeper.stats import SUMMARIES, Group, several, stratified_bootstrap
+from sweeper.storage import driver_alive
 
 #: thresholds of the normalised profiles: a method may beat its study's control (tau > 1)
 NORMALIZED_TAUS = tuple(i / 100 for i in range(0, 151))
@@ -68,10 +69,6 @@ def normalized_table(scores: pd.DataFrame, methods: list[str], *, seed: int = 0)
     """Per method and score (``SCORES``): the studies and trials it pools, and
     ``sweeper.stats.SUMMARIES`` of the normalised score (optimality gap below 1, the best
     control) each with ``_low``/``_high``: a stratified bootstrap, each study a stratum."""
-    import pandas as pd
-
-    from sweeper.stats import SUMMARIES, Group, several, stratified_bootstrap
-
     rows = []
     for score in SCORES:
         groups = {
@@ -114,7 +111,6 @@ def normalized_profiles(scores: pd.DataFrame, methods: list[str], *, seed: int =
 
 
 def anchors_frame(anchors: Sequence[Anchors]) -> pd.DataFrame:
-    import pandas as pd
 
     return pd.DataFrame(
         [
@@ -142,10 +138,6 @@ def aggregate_studies(
 ) -> CombinedResult:
     """Read every ``(storage_url, study_name)``, normalise, pool, write the combined report
     to ``out``. Reads only. Raises ValueError for a study that cannot be read."""
-    import pandas as pd
-
-    from sweeper.storage import driver_alive
-
     say = progress or (lambda message: print(message, file=sys.stderr, flush=True))
     start = time.perf_counter()
     labels = _labels([name for _, name in studies])

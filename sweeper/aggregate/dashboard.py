@@ -7,6 +7,7 @@ from sweeper.aggregate.figures import PALETTE, PROFILE_SCORES, env_of, metric_la
 from sweeper.aggregate.frame import methods_of, scored, study_info, trial_rows
 from sweeper.aggregate.report import DEFINITIONS, table_markdown
 from sweeper.aggregate.tables import CONFIDENCE, Tables
+from sweeper.storage import OBJECTIVE_NAME, name_objective
 
 #: first lines of the study note's section written by ``sweeper aggregate``
 NOTE_BEGIN = "<!-- sweeper aggregate: begin (rewritten by every run) -->"
@@ -159,8 +160,6 @@ def save_to_dashboard(storage, frame, tables: Tables) -> None:
     import optuna
     import plotly.graph_objects as go
     from optuna_dashboard import get_note, save_note, save_plotly_graph_object
-
-    from sweeper.storage import OBJECTIVE_NAME, name_objective
 
     study = optuna.load_study(study_name=study_info(frame).name, storage=storage)
     if study.metric_names != [OBJECTIVE_NAME]:  # studies launched before it was named

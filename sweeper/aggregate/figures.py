@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
+
+import numpy as np
+import pandas as pd
 
 from sweeper.aggregate.frame import methods_of, scored, study_info, trial_rows
 from sweeper.aggregate.tables import CONFIDENCE, Tables
-
-if TYPE_CHECKING:
-    import pandas as pd
 
 #: trials per panel above which lines are drawn without antialiasing (25 % faster)
 DENSE = 200
@@ -183,7 +183,6 @@ def _draw_trial_curves(frame, path: Path) -> Path:
     """A row per metric, a column per method, a line per trial: done trials coloured by
     their AUC, unfinished (running or interrupted) ones grey dashed, failed ones red dotted."""
     import matplotlib as mpl
-    import numpy as np
     from matplotlib.collections import LineCollection
     from matplotlib.lines import Line2D
 
@@ -251,7 +250,6 @@ def _draw_trial_curves(frame, path: Path) -> Path:
 
 
 def _draw_auc(frame, table: pd.DataFrame, path: Path) -> Path:
-    import numpy as np
     from matplotlib.figure import Figure
 
     figure = Figure(figsize=(1.6 * len(table) + 3, 4.5), layout="constrained")

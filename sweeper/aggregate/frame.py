@@ -8,9 +8,13 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-if TYPE_CHECKING:
-    import pandas as pd
+import numpy as np
+import pandas as pd
 
+from sweeper.storage import current_numbers
+from sweeper.study import read_rows
+
+if TYPE_CHECKING:
     from sweeper.study import StudyRows
 
 TRIAL_COLUMNS = (
@@ -64,18 +68,12 @@ def load_study_frame(storage_url: str, study_name: str) -> pd.DataFrame:
     Read-only, with ``sweeper.study.read_rows`` (one query per Optuna table). Raises
     ValueError when the storage cannot be read, has no such study, or the study no trials.
     """
-    from sweeper.study import read_rows
-
     return _build_frame(study_name, read_rows(storage_url, study_name))
 
 
 def _build_frame(study_name: str, raw: StudyRows) -> pd.DataFrame:
     """Join the raw Optuna tables of ``read_rows`` into the tidy frame of ``load_study_frame``."""
-    import numpy as np
-    import pandas as pd
     from optuna.distributions import json_to_distribution
-
-    from sweeper.storage import current_numbers
 
     trials, values, user_attrs = raw.trials, raw.values, raw.user_attrs
     params, intermediate, study_attrs = raw.params, raw.intermediate, raw.study_attrs
@@ -179,7 +177,6 @@ def trial_rows(frame: pd.DataFrame) -> pd.DataFrame:
 
 def scored(frame: pd.DataFrame) -> pd.DataFrame:
     """Rows of the trials that enter the statistics: counted, COMPLETE, with a finite AUC."""
-    import numpy as np
 
     keep = frame["counted"] & (frame["state"] == "COMPLETE") & np.isfinite(frame["auc"])
     return frame[keep]

@@ -21,13 +21,12 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+
+import pandas as pd
 
 from agent.config import TRUE_REWARD_METHODS
 from sweeper.aggregate.frame import scored, study_info
-
-if TYPE_CHECKING:
-    import pandas as pd
+from sweeper.stats import iqm, normalize
 
 #: the scores that are normalised, as columns of ``trial_scores``
 SCORES = ("auc", "final_success")
@@ -62,8 +61,6 @@ def trial_scores(frame: pd.DataFrame) -> pd.DataFrame:
 
 def study_anchors(frame: pd.DataFrame, scores: pd.DataFrame | None = None) -> Anchors:
     """The study's anchors from its frame (``scores``: its ``trial_scores``, if computed)."""
-    from sweeper.stats import iqm
-
     info = study_info(frame)
     scores = trial_scores(frame) if scores is None else scores
     random = (info.attrs.get("random_agent") or {}).get("success_rate")
@@ -97,8 +94,6 @@ def study_anchors(frame: pd.DataFrame, scores: pd.DataFrame | None = None) -> An
 def normalized_scores(scores: pd.DataFrame, anchors: Anchors) -> pd.DataFrame:
     """``scores`` (``trial_scores``) with ``<score>_norm`` columns for every score in
     ``SCORES``; an empty frame when the study has no anchors (``anchors.problem``)."""
-    from sweeper.stats import normalize
-
     if anchors.problem is not None:
         return scores.iloc[:0].assign(**{f"{s}_norm": [] for s in SCORES})
     return scores.assign(

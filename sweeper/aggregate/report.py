@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import math
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
+
+import pandas as pd
 
 from sweeper.aggregate.frame import study_info, trial_rows
 from sweeper.aggregate.tables import CONFIDENCE, RESAMPLES, Tables
-
-if TYPE_CHECKING:
-    import pandas as pd
 
 
 def _fmt(value: Any, digits: int = 3) -> str:

@@ -5,12 +5,24 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
+
+import numpy as np
+import pandas as pd
 
 from sweeper.aggregate.frame import methods_of, scored, stage_frame, study_info, trial_rows
-
-if TYPE_CHECKING:
-    import pandas as pd
+from sweeper.plan import confirm_key
+from sweeper.stats import (
+    SUMMARIES,
+    Group,
+    iqm,
+    mean,
+    probability_of_improvement,
+    profile_statistic,
+    several,
+    stratified_bootstrap,
+)
+from sweeper.storage import tally
 
 #: bootstrap resamples for every interval
 RESAMPLES = 2000
@@ -49,7 +61,6 @@ def method_curves(frame: pd.DataFrame) -> pd.DataFrame:
     ``n`` counts the trials with a value there (a diverged trial has no distances after its
     divergence, so those means cover fewer trials).
     """
-
     rows = scored(frame).dropna(subset=["step"])
     metrics = study_info(frame).metrics
     long = rows.melt(id_vars=["method", "step"], value_vars=metrics, var_name="metric")
@@ -75,12 +86,6 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
     seeded by ``seed``, one resample shared by the four); compute (``compute_columns``); and
     the best trial (number, key, AUC, searched hyperparameters as ``name=value`` pairs).
     """
-    import numpy as np
-    import pandas as pd
-
-    from sweeper.stats import SUMMARIES, several, stratified_bootstrap
-    from sweeper.storage import tally
-
     trials = trial_rows(frame)
     current = trials[trials["counted"]]
     planned = study_info(frame).attrs.get("plan") or current["key"].tolist()
@@ -126,10 +131,6 @@ def improvement_table(frame: pd.DataFrame, *, seed: int = 0) -> pd.DataFrame:
     interval, the pairs resampled whole (both AUCs of a pair together); NaN when the
     methods share no pair.
     """
-    import pandas as pd
-
-    from sweeper.stats import Group, probability_of_improvement, stratified_bootstrap
-
     columns = ["method", "versus", "probability", "low", "high", "pairs"]
     done = trial_rows(scored(frame))
     if done.empty:
@@ -176,8 +177,6 @@ def compute_columns(frame: pd.DataFrame) -> dict[str, dict[str, float]]:
 def success_matrices(frame: pd.DataFrame, metric: str = "success_rate"):
     """Per method: the evaluation steps and a (done trials x steps) array of ``metric``;
     trials whose curve does not cover the method's full grid are left out."""
-    import numpy as np
-
     rows = scored(frame).dropna(subset=["step"])
     result = {}
     for method, part in rows.groupby("method", sort=False):
@@ -192,10 +191,6 @@ def iqm_curves(frame: pd.DataFrame, *, seed: int = 0) -> pd.DataFrame:
     """Sample-efficiency curves: per method and step, the IQM of ``success_rate`` over done
     trials with its 95 % bootstrap band (whole curves resampled: one trial, one unit) and
     the number of trials ``n``."""
-    import pandas as pd
-
-    from sweeper.stats import iqm, stratified_bootstrap
-
     matrices = success_matrices(frame)
     intervals = stratified_bootstrap(
         iqm,
@@ -226,7 +221,6 @@ def profile_table(frame: pd.DataFrame, *, seed: int = 0) -> pd.DataFrame:
     """Performance profiles: per method, score (``auc``, ``final_success``: the success rate
     at the last evaluation) and tau in ``TAUS``, the fraction of done trials whose score is
     above tau, with its 95 % bootstrap band."""
-
     matrices = success_matrices(frame)
     done = trial_rows(scored(frame))
     scores = {
@@ -246,11 +240,6 @@ def profile_frame(
 ) -> pd.DataFrame:
     """``profile_table``'s rows from ``scores[score][method]`` (arrays of scores), resampled
     within ``strata[score][method]`` (stratum labels) when given, at thresholds ``taus``."""
-    import numpy as np
-    import pandas as pd
-
-    from sweeper.stats import Group, profile_statistic, stratified_bootstrap
-
     taus = np.asarray(taus)
     parts = []
     for score, samples in scores.items():
@@ -328,13 +317,6 @@ def confirm_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int =
     with a 95 % bootstrap interval over those seeds), ``drop`` (search minus confirm AUC:
     the winner's curse), ``n`` done fresh seeds, and the stage's ledger per configuration.
     Empty when the study has no confirmation stage (study attr ``confirm``)."""
-    import numpy as np
-    import pandas as pd
-
-    from sweeper.plan import confirm_key
-    from sweeper.stats import mean, stratified_bootstrap
-    from sweeper.storage import tally
-
     chosen = study_info(frame).attrs.get("confirm")
     if not chosen:
         return pd.DataFrame(columns=CONFIRM_COLUMNS)
