@@ -387,3 +387,16 @@ def test_dashboard_names_the_objective_and_holds_the_new_figures(synthetic):
     figures = get_plotly_graph_objects(storage.get_study_system_attrs(study._study_id))
     assert {"sweeper-profiles", "sweeper-auc", "sweeper-curves-success_rate"} <= set(figures)
     assert "IQM" in figures["sweeper-curves-success_rate"]
+
+
+def test_the_dashboard_trial_panel_spreads_a_large_method_over_its_auc_ranks():
+    from sweeper.aggregate.dashboard import TRIALS_PER_PANEL, _panel_trials
+
+    few = pd.DataFrame({"trial": range(5), "auc": [0.1, 0.5, np.nan, 0.3, 0.2]})
+    assert _panel_trials(few) is few
+    many = pd.DataFrame({"trial": range(101), "auc": np.r_[np.linspace(0, 1, 100), np.nan]})
+    shown = _panel_trials(many)
+    assert len(shown) == TRIALS_PER_PANEL == shown["trial"].nunique()
+    assert shown["trial"].iloc[0] == 99 and shown["trial"].iloc[-1] == 100  # best; no AUC
+    gaps = np.diff(shown["trial"].iloc[:-1].to_numpy())
+    assert gaps.max() - gaps.min() <= 1  # evenly spread over the ranks

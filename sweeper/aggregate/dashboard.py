@@ -3,6 +3,9 @@ note, saved into the study."""
 
 from __future__ import annotations
 
+import numpy as np
+import pandas as pd
+
 from sweeper.aggregate.figures import PALETTE, PROFILE_SCORES, env_of, metric_label
 from sweeper.aggregate.frame import methods_of, scored, study_info, trial_rows
 from sweeper.aggregate.report import DEFINITIONS, table_markdown
@@ -102,39 +105,66 @@ def _profile_figure(go, frame, tables: Tables):
     return figure
 
 
-def _trials_figure(go, frame):
-    """Every counted trial's success rate, a panel per method, each line named by its key:
-    the dashboard's own intermediate-value plot draws all trials in one colour-less tangle."""
+#: most trials drawn per method in the dashboard's trial panels (a study attr holds the
+#: figure, and hundreds of overlapping lines read no better than a spread of them)
+TRIALS_PER_PANEL = 30
+
+
+def _panel_trials(trials: pd.DataFrame) -> pd.DataFrame:
+    """One method's trials to draw: all of them, or ``TRIALS_PER_PANEL`` spread evenly over
+    their AUC ranks (best and worst included; trials without an AUC rank last)."""
+    if len(trials) <= TRIALS_PER_PANEL:
+        return trials
+    ranked = trials.sort_values("auc", ascending=False, na_position="last")
+    picks = np.unique(np.linspace(0, len(ranked) - 1, TRIALS_PER_PANEL).round().astype(int))
+    return ranked.iloc[picks]
+
+
+def _trials_figure(go, frame: pd.DataFrame):
+    """Each method's trials' success rate in a panel of its own; hovering a point names its
+    trial (key and number). One trace per method, its trials apart by gaps. The
+    dashboard's own intermediate-value plot draws every trial alike."""
     from plotly.subplots import make_subplots
 
     methods = methods_of(frame)
     columns = min(3, len(methods))
     rows = -(-len(methods) // columns)
+    trials = trial_rows(frame[frame["counted"]])
+    titles = []
+    for method in methods:
+        mine = trials[trials["method"] == method]
+        shown = len(_panel_trials(mine))
+        titles.append(method if shown == len(mine) else f"{method} ({shown} of {len(mine)})")
     figure = make_subplots(
-        rows=rows, cols=columns, shared_xaxes=True, shared_yaxes=True, subplot_titles=methods
+        rows=rows, cols=columns, shared_xaxes=True, shared_yaxes=True, subplot_titles=titles
     )
     evaluated = frame[frame["counted"] & frame["step"].notna()]
     for index, method in enumerate(methods):
-        colour = f"rgba{(*PALETTE[index % len(PALETTE)], 1)}"
+        drawn = set(_panel_trials(trials[trials["method"] == method])["trial"])
+        mine = evaluated[(evaluated["method"] == method) & evaluated["trial"].isin(drawn)]
+        steps, success, names = [], [], []
+        for (number, key), part in mine.groupby(["trial", "key"]):
+            steps += [*part["step"].astype(int), None]  # None: a gap between two trials
+            success += [*part["success_rate"], None]
+            names += [f"{key} (trial {number})"] * (len(part) + 1)
         row, column = divmod(index, columns)
-        for (number, key), part in evaluated[evaluated["method"] == method].groupby(
-            ["trial", "key"]
-        ):
-            figure.add_trace(
-                go.Scatter(
-                    x=part["step"].astype(int).tolist(),
-                    y=part["success_rate"].tolist(),
-                    mode="lines+markers",
-                    name=f"{key} (trial {number})",
-                    legendgroup=method,
-                    line={"color": colour, "width": 1},
-                ),
-                row=row + 1,
-                col=column + 1,
-            )
+        figure.add_trace(
+            go.Scatter(
+                x=steps,
+                y=success,
+                text=names,
+                mode="lines+markers",
+                name=method,
+                line={"color": f"rgba{(*PALETTE[index % len(PALETTE)], 1)}", "width": 1},
+                hovertemplate="%{text}<br>step %{x}: %{y:.2f}<extra></extra>",
+            ),
+            row=row + 1,
+            col=column + 1,
+        )
     figure.update_yaxes(range=[-0.02, 1.02])
     figure.update_layout(
-        title="success rate of every trial, by method (hover: the trial's key and number)",
+        title=f"success rate of each trial by method (at most {TRIALS_PER_PANEL} per method, "
+        "spread over AUC ranks; hover: the trial's key and number)",
         showlegend=False,
     )
     return figure
