@@ -184,27 +184,11 @@ def trials_by_method(frame, study_id: int) -> str:
     return "\n".join(lines)
 
 
-def save_to_dashboard(storage, frame, tables: Tables) -> None:
-    """Plotly figures (curves per metric, sample efficiency, profiles, AUC), the objective's
-    name and a note section into the study."""
-    import optuna
-    import plotly.graph_objects as go
-    from optuna_dashboard import get_note, save_note, save_plotly_graph_object
-
-    study = optuna.load_study(study_name=study_info(frame).name, storage=storage)
-    if study.metric_names != [OBJECTIVE_NAME]:  # studies launched before it was named
-        name_objective(study)
-    for metric in study_info(frame).metrics:
-        figure = _curve_figure(go, frame, tables, metric)
-        save_plotly_graph_object(study, figure, graph_object_id=f"sweeper-curves-{metric}")
-    figure = _profile_figure(go, frame, tables)
-    save_plotly_graph_object(study, figure, graph_object_id="sweeper-profiles")
-    figure = _trials_figure(go, frame)
-    save_plotly_graph_object(study, figure, graph_object_id="sweeper-trials")
-    table, improvement = tables.table, tables.improvement
-    done = table[table["n"] > 0]
+def _auc_figure(go, frame: pd.DataFrame, tables: Tables):
+    """Every trial's AUC per method, with the method's IQM and its bootstrap CI."""
+    done = tables.table[tables.table["n"] > 0]
     aucs = trial_rows(scored(frame))
-    auc_figure = go.Figure(
+    figure = go.Figure(
         go.Box(
             x=aucs["method"].tolist(),
             y=aucs["auc"].tolist(),
@@ -217,7 +201,7 @@ def save_to_dashboard(storage, frame, tables: Tables) -> None:
             line={"color": "rgba(127, 127, 127, 0.7)"},
         )
     )
-    auc_figure.add_trace(
+    figure.add_trace(
         go.Scatter(
             x=done["method"].tolist(),
             y=done["iqm"].tolist(),
@@ -232,18 +216,39 @@ def save_to_dashboard(storage, frame, tables: Tables) -> None:
             name=f"IQM with {CONFIDENCE:.0%} bootstrap CI",
         )
     )
-    auc_figure.update_layout(
+    figure.update_layout(
         title=f"AUC per method: IQM with {CONFIDENCE:.0%} stratified bootstrap CI",
         xaxis_title="method",
         yaxis_title="AUC of success rate (normalised, 0..1)",
     )
-    save_plotly_graph_object(study, auc_figure, graph_object_id="sweeper-auc")
+    return figure
+
+
+def save_to_dashboard(storage, frame: pd.DataFrame, tables: Tables) -> None:
+    """Plotly figures (curves per metric, sample efficiency, profiles, trials per method,
+    AUC), the objective's name and a note section into the study."""
+    import optuna
+    import plotly.graph_objects as go
+    from optuna_dashboard import get_note, save_note, save_plotly_graph_object
+
+    study = optuna.load_study(study_name=study_info(frame).name, storage=storage)
+    if study.metric_names != [OBJECTIVE_NAME]:  # studies launched before it was named
+        name_objective(study)
+    figures = {
+        f"sweeper-curves-{metric}": _curve_figure(go, frame, tables, metric)
+        for metric in study_info(frame).metrics
+    }
+    figures["sweeper-profiles"] = _profile_figure(go, frame, tables)
+    figures["sweeper-trials"] = _trials_figure(go, frame)
+    figures["sweeper-auc"] = _auc_figure(go, frame, tables)
+    for graph_object_id, figure in figures.items():
+        save_plotly_graph_object(study, figure, graph_object_id=graph_object_id)
     section = "\n".join(
         [
             NOTE_BEGIN,
             "## Method comparison (sweeper aggregate)",
             "",
-            table_markdown(table, improvement),
+            table_markdown(tables.table, tables.improvement),
             "",
             DEFINITIONS,
             "",
