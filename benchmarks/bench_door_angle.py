@@ -1,0 +1,88 @@
+"""Does an image reward on sawyer_door see the door open? The latent reward as the door
+opens from its reset angle (closed) toward the goal angle, with the hand where the reset put it.
+
+For each of ``--resets`` resets: render the start with the door at a few angles between
+closed and the goal's, encode them with each encoder next to the goal image, and print
+the reward relative to the closed door, and how often opening the door a little
+(``--step`` rad) toward the goal *lowers* the reward. A reward that learns the door should
+rise from the first step; one that falls there points the wrong way exactly where every
+episode starts, which is what Algorithm 1's gradient agreement (``sweeper diagnose``)
+averages over.
+
+Measured (default camera, 48x48, 10 resets, step 0.03 rad):
+
+    pixel  7/10 resets: opening toward the goal lowers the reward
+    conv0  7/10   conv1  8/10   conv2  9/10   (random conv nets, seeds 0-2)
+
+At reset 0 the pixel reward falls for the first ~0.05 rad of opening, is back to the
+closed door's value only at ~0.2 rad and rises beyond (the goal is ~0.5 rad); the conv
+rewards are back only at ~0.3-0.4 rad. A likely reason, not yet tested: from the
+top-down default camera the door is a thin slab, and two thin slabs at different angles
+share few pixels until they nearly overlap.
+
+Run: ``./run python benchmarks/bench_door_angle.py [--resets 10] [--step 0.03]
+[--conv-seeds 0,1,2]``
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from agent.envs import make_env
+from encoders import latent_reward, make_encoder
+
+#: fractions of the way from the closed door to the goal angle that are printed
+FRACTIONS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.4, 0.6, 0.8, 1.0)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--resets", type=int, default=10)
+    parser.add_argument("--step", type=float, default=0.03, help="rad toward the goal")
+    parser.add_argument("--conv-seeds", default="0,1,2")
+    args = parser.parse_args()
+
+    env = make_env("sawyer_door")
+    shape = (env.image_size, env.image_size, 3)
+    encoders = {"pixel": make_encoder("pixel", shape, seed=0)}
+    for seed in map(int, args.conv_seeds.split(",")):
+        encoders[f"conv{seed}"] = make_encoder("conv", shape, seed=seed)
+    lowered = dict.fromkeys(encoders, 0)
+    try:
+        for reset in range(args.resets):
+            env.reset(seed=reset)
+            start, goal = env.controllable_state(), env.goal_state()
+            toward = np.sign(goal[3] - start[3])
+            angles = [start[3] + toward * args.step]
+            angles += [start[3] + f * (goal[3] - start[3]) for f in FRACTIONS]
+            env.set_controllable_state(goal)
+            images = [env.render_image()]
+            reached = []
+            for angle in angles:
+                reached.append(env.set_controllable_state(np.array([*start[:3], angle])))
+                images.append(env.render_image())
+            images = np.stack(images)
+            for name, encoder in encoders.items():
+                z = encoder.encode(images)
+                reward = latent_reward(z[1:], z[:1])
+                stepped, curve = reward[0], reward[1:]
+                lowered[name] += bool(stepped < curve[0])
+                if reset == 0:
+                    points = " ".join(
+                        f"{r[3]:+.2f}:{value - curve[0]:+.3g}"
+                        for r, value in zip(reached[1:], curve, strict=True)
+                    )
+                    print(f"{name:6s} reset 0, angle: reward - reward(closed)  {points}")
+    finally:
+        env.close()
+    for name, count in lowered.items():
+        print(
+            f"{name:6s} {count}/{args.resets} resets: opening the door {args.step} rad toward "
+            "the goal lowers the reward"
+        )
+
+
+if __name__ == "__main__":
+    main()
