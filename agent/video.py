@@ -26,7 +26,6 @@ MIN_PANEL = 128
 #: pixels between the two images and of the caption band below them
 GAP, CAPTION = 4, 30
 FORMATS = ("mp4", "gif")
-MIME_TYPES = {"mp4": "video/mp4", "gif": "image/gif"}
 
 
 def default_format() -> str:
