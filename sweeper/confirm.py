@@ -28,9 +28,9 @@ from typing import Any
 
 from optuna.trial import FrozenTrial, TrialState
 
-from sweeper.driver import EXIT_INTERRUPTED, launch, positive_int, prepare, sigterm_stops
+from sweeper.driver import EXIT_INTERRUPTED, launch, prepare, sigterm_stops
 from sweeper.plan import Plan, build_plan, confirm_plan, fresh_seeds
-from sweeper.spec import SpecError, StudySpec
+from sweeper.spec import SpecError, StudySpec, positive_int
 from sweeper.storage import (
     StorageError,
     StudyStore,

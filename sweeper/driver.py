@@ -22,7 +22,6 @@ not to the progress display.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import dataclasses
 import math
@@ -106,18 +105,6 @@ def prepare(
     plan = build_plan(spec)
     check_storage(spec.storage_url)
     return spec, plan
-
-
-def positive_int(text: str) -> int:
-    """An argparse type for the counts a launch takes (``--max-concurrent``; ``sweeper
-    confirm``'s ``--top-k`` and ``--seeds``): an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {value}")
-    return value
 
 
 def check_writable(url: str) -> None:

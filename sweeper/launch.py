@@ -9,8 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from sweeper.driver import EXIT_INTERRUPTED, launch, positive_int, prepare, sigterm_stops
-from sweeper.spec import StudySpec
+from sweeper.spec import StudySpec, positive_int
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(spec: StudySpec, args: argparse.Namespace) -> int:
     """``sweeper launch``: returns the exit code."""
+    # the driver loads Ray and Optuna: only when the command runs (`--help` stays light)
+    from sweeper.driver import EXIT_INTERRUPTED, launch, prepare, sigterm_stops
+
     with sigterm_stops():
         try:
             try:

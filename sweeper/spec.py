@@ -20,6 +20,7 @@ a float field accepts integers.
 
 from __future__ import annotations
 
+import argparse
 import difflib
 import functools
 import inspect
@@ -677,3 +678,15 @@ def load_spec(path: str | os.PathLike[str]) -> StudySpec:
     except SpecError as exc:
         raise SpecError(f"{path}: {exc}") from None
     return parse_spec(data, source=str(path))
+
+
+def positive_int(text: str) -> int:
+    """An argparse type for the counts a launch takes (``--max-concurrent``; ``sweeper
+    confirm``'s ``--top-k`` and ``--seeds``): an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {value}")
+    return value

@@ -27,7 +27,7 @@ print([m for m in ("torch", "ray", "optuna", "mujoco", "matplotlib") if m in sys
 """
 
 
-@pytest.mark.parametrize("command", [[], ["diagnose"]])
+@pytest.mark.parametrize("command", [[], ["diagnose"], ["launch"], ["status"]])
 def test_help_is_light(command):
     """`sweeper --help` imports no torch, Ray, Optuna, MuJoCo or matplotlib."""
     done = subprocess.run(
