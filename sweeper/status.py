@@ -11,6 +11,7 @@ import argparse
 import sys
 from typing import TYPE_CHECKING, TextIO
 
+from agent.config import Outcome
 from sweeper.plan import build_plan
 from sweeper.storage import STORAGE_GRACE, current_trials, ledger, redact
 from sweeper.study import NoStudy, open_study
@@ -70,7 +71,7 @@ def status_lines(
         trial = current.get(key)
         if trial is None or trial.state.name != "FAIL":
             continue
-        if trial.user_attrs.get("outcome") == "interrupted":
+        if trial.user_attrs.get("outcome") == Outcome.INTERRUPTED:
             lines.append(f"interrupted: {key} (trial {trial.number}); a launch resumes it")
         else:
             error = str(trial.user_attrs.get("error", "no error recorded")).splitlines()[0]

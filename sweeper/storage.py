@@ -695,7 +695,7 @@ class StudyStore:
 
     def interrupt(self, trial_id: int, why: str, successor: int | None) -> None:
         """FAIL a RUNNING trial as ``interrupted`` (its key is re-run, from its checkpoint)."""
-        attrs: dict[str, Any] = {"outcome": "interrupted", "error": f"interrupted: {why}"}
+        attrs: dict[str, Any] = {"outcome": Outcome.INTERRUPTED, "error": f"interrupted: {why}"}
         if successor is not None:
             attrs["superseded_by"] = successor
         self.fail(trial_id, attrs)

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from agent.config import Outcome
 from sweeper.aggregate.frame import methods_of, scored, study_info, trial_rows
 from sweeper.aggregate.tables import CONFIDENCE, Tables
 
@@ -206,7 +207,7 @@ def _draw_trial_curves(frame, path: Path) -> Path:
         # each trial's rows are contiguous: split the columns at the trial boundaries
         starts = np.flatnonzero(np.diff(part["trial"].to_numpy(), prepend=-1))
         states, outcomes = part["state"].to_numpy()[starts], part["outcome"].to_numpy()[starts]
-        failed = (states == "FAIL") & (outcomes != "interrupted")  # interrupted: re-run later
+        failed = (states == "FAIL") & (outcomes != Outcome.INTERRUPTED)  # re-run later
         states = np.where(states == "COMPLETE", states, np.where(failed, "FAIL", "RUNNING"))
         colours = [
             cmap(norm(a)) if s == "COMPLETE" else looks[s][0]
