@@ -67,12 +67,11 @@ from sweeper.storage import (
     StudyBusy,
     StudyStore,
     check_storage,
+    check_writable,
     code_revision,
     json_safe,
     package_versions,
     redact,
-    resolve_url,
-    sqlite_path,
 )
 from sweeper.study import open_study
 
@@ -105,27 +104,6 @@ def prepare(
     plan = build_plan(spec)
     check_storage(spec.storage_url)
     return spec, plan
-
-
-def check_writable(url: str) -> None:
-    """Raise a StorageError naming the file and the fix unless the driver can write an
-    existing SQLite database (``check_storage`` checks its folder): SQLite opens a file it
-    cannot write read-only, and the first write would fail after Ray and the workers
-    started. Opening the file for writing changes nothing in it."""
-    path = sqlite_path(resolve_url(url))
-    if path is None:
-        return
-    for file in (path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")):
-        if not file.is_file():
-            continue
-        try:
-            with file.open("r+b"):
-                pass
-        except OSError as e:
-            raise StorageError(
-                f"storage: cannot write the database file {file} ({e.strerror}): make it "
-                "writable (chmod u+w, chattr -i, a read-write mount) or give another --storage"
-            ) from None
 
 
 def study_attrs(spec: StudySpec, plan: Plan) -> dict[str, Any]:

@@ -266,6 +266,27 @@ def open_storage(
     return build()
 
 
+def check_writable(url: str) -> None:
+    """Raise a StorageError naming the file and the fix unless the driver can write an
+    existing SQLite database (``check_storage`` checks its folder): SQLite opens a file it
+    cannot write read-only, and the first write would fail after Ray and the workers
+    started. Opening the file for writing changes nothing in it."""
+    path = sqlite_path(resolve_url(url))
+    if path is None:
+        return
+    for file in (path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")):
+        if not file.is_file():
+            continue
+        try:
+            with file.open("r+b"):
+                pass
+        except OSError as e:
+            raise StorageError(
+                f"storage: cannot write the database file {file} ({e.strerror}): make it "
+                "writable (chmod u+w, chattr -i, a read-write mount) or give another --storage"
+            ) from None
+
+
 def read_only_engine_kwargs(url: str) -> dict[str, Any]:
     """``create_engine`` arguments for a reader that the database itself keeps from
     writing: SQLite opened with ``mode=ro`` (``connect_read_only``), a PostgreSQL session
