@@ -29,16 +29,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from agent.config import SACConfig
-from encoders.conv import conv_output_size, drq_conv_stack
+from encoders.conv import conv_output_size, drq_conv_stack, drq_weight_init
 
 LOG_STD_MIN, LOG_STD_MAX = -10.0, 2.0
-
-
-def orthogonal_init(module: nn.Module) -> None:
-    if isinstance(module, nn.Linear | nn.Conv2d):
-        gain = nn.init.calculate_gain("relu") if isinstance(module, nn.Conv2d) else 1.0
-        nn.init.orthogonal_(module.weight, gain)
-        nn.init.zeros_(module.bias)
 
 
 def mlp(in_dim: int, hidden_sizes: tuple[int, ...], out_dim: int) -> nn.Sequential:
@@ -140,7 +133,7 @@ class SAC:
         self.pixels = len(obs_shape) == 3
         if self.pixels:
             self.encoder: ConvEncoder | None = ConvEncoder(obs_shape[0], cfg.num_filters)
-            self.encoder.apply(orthogonal_init)
+            self.encoder.apply(drq_weight_init)
             self.encoder.to(device, memory_format=torch.channels_last)
             dims = (self.encoder.repr_dim, self.encoder.repr_dim)
         else:
@@ -148,8 +141,8 @@ class SAC:
             dims = (obs_shape[0], goal_shape[0])
         self.actor = Actor(dims, action_dim, cfg, self.pixels).to(device)
         self.critic = Critic(dims, action_dim, cfg, self.pixels).to(device)
-        self.actor.apply(orthogonal_init)
-        self.critic.apply(orthogonal_init)
+        self.actor.apply(drq_weight_init)
+        self.critic.apply(drq_weight_init)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.log_alpha = torch.tensor(math.log(cfg.init_temperature), device=device)
         self.log_alpha.requires_grad_(True)

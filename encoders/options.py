@@ -204,6 +204,27 @@ class LatentOptions(Hyperparameters):
     latent_dim: int = hparam(128, ge=1, search=(128, 256), help="size of the encoding")  # A.1
 
 
+#: how CONV's random weights are drawn (``encoders.conv``)
+CONV_INITS = ("drq", "pytorch")
+
+
+@dataclass(frozen=True)
+class ConvOptions(LatentOptions):
+    """The random conv net (conv). LINEAR has no such choice: its one construction is the
+    Gaussian projection of ``encoders.linear``."""
+
+    # the thesis' CONV is "the same architecture used by all RL agents" (DrQ's), so it is
+    # initialised as DrQ's agents initialise their encoder; PyTorch's default is kept for
+    # comparison (its biases dominate the image signal after four ReLU layers)
+    init: str = hparam(
+        "drq",
+        one_of=CONV_INITS,
+        search=("drq",),
+        help="weights: 'drq' (orthogonal, gain sqrt(2) on convs and 1 on the linear, zero "
+        "biases: DrQ's weight_init) or 'pytorch' (PyTorch's default)",
+    )
+
+
 @dataclass(frozen=True)
 class VAEOptions(Hyperparameters):
     """The beta-VAEs (vae, cvae)."""

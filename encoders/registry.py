@@ -15,6 +15,7 @@ from typing import Any
 
 from encoders.base import RewardEncoder
 from encoders.options import (
+    ConvOptions,
     Hyperparameters,
     LatentOptions,
     NoOptions,
@@ -33,7 +34,7 @@ class _Entry:
 _REGISTRY: dict[str, _Entry] = {
     "pixel": _Entry("encoders.pixel:PixelEncoder", NoOptions),
     "linear": _Entry("encoders.linear:LinearEncoder", LatentOptions),
-    "conv": _Entry("encoders.conv:ConvEncoder", LatentOptions),
+    "conv": _Entry("encoders.conv:ConvEncoder", ConvOptions),
     "vae": _Entry("encoders.vae:VAEEncoder", VAEOptions),
     "cvae": _Entry("encoders.vae:CVAEEncoder", VAEOptions),
     "vgg": _Entry("encoders.vgg:VGGEncoder", VGGOptions),

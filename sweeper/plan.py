@@ -4,7 +4,8 @@
 with the study seed and shared by every method (a paired design: config ``c`` of method A
 and config ``c`` of method B differ only in the reward). Each method's own options are
 sampled per config from a generator derived from (study seed, method name), so adding or
-removing a method leaves the others' samples unchanged. Every config runs once per seed.
+removing a method leaves the others' samples unchanged (a named variant of an encoder
+draws from its encoder's stream). Every config runs once per seed.
 
 One ``PlanEntry`` per ``(method, config_id, seed)``; each method has exactly
 ``K * len(seeds)`` entries. ``Plan.hash`` fingerprints everything that changes what the
@@ -74,9 +75,11 @@ def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
 
     drafts = []  # (method, config_id, seed, params, choices, TrialConfig without checkpoint_dir)
     for method in sorted(spec.methods):
-        space = spec.methods[method]
+        encoder, space = spec.methods[method].encoder, spec.methods[method].space
+        # a variant draws from its encoder's stream: where their spaces agree, its config c
+        # has the encoder's options of config c (a paired ablation)
         method_configs = sample_configs(
-            space, spec.trials_per_method, derive_rng(spec.seed, f"method:{method}")
+            space, spec.trials_per_method, derive_rng(spec.seed, f"method:{encoder}")
         )
         choices = sac_choices | {f"{method}.{k}": cs for k, cs in space.items()}
         for config_id, (sac, options) in enumerate(zip(sac_configs, method_configs, strict=True)):
@@ -86,7 +89,7 @@ def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
                 config = TrialConfig(
                     env=spec.env.name,
                     image_size=spec.env.image_size,
-                    method=method,
+                    method=encoder,
                     encoder_params=dict(options),
                     sac=SACConfig(**sac),
                     reward_scale=spec.reward_scale,

@@ -41,6 +41,7 @@ from pydantic import (
     Strict,
     ValidationError,
     create_model,
+    field_serializer,
     field_validator,
     model_validator,
 )
@@ -297,21 +298,71 @@ def method_options(name: str) -> type:
     return NoOptions if name in TRUE_REWARD_METHODS else encoder_options(name)
 
 
-def _method_space(name: str, options: Any) -> dict[str, tuple[Any, ...]]:
-    """The full search space of method ``name``: its declared defaults, the spec's
-    ``options`` on top."""
+#: a variant's name: it becomes the first part of trial keys and of "<method>.<option>"
+#: params, so no "/" or "."; "confirm" starts the confirmation stage's keys
+_VARIANT_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,63}$")
+
+
+class Method(BaseModel):
+    """One method of a study: the ``encoder`` it runs (an encoder registry name, or a
+    true-reward control) and its full search space (``space``: option -> choices).
+
+    A method named after its encoder is the usual case (``conv: {latent_dim: 128}``); a
+    named variant gives its encoder (``conv_pytorch_init: {encoder: conv, init: pytorch}``),
+    so one study can hold several variants of one encoder.
+    """
+
+    model_config = ConfigDict(frozen=True)
+
+    encoder: str
+    space: dict[str, tuple[Any, ...]]
+
+
+def _method(name: str, options: Any) -> Method:
+    """Method ``name`` of a spec: its encoder (``options["encoder"]``, else the name) and
+    its search space, the encoder's declared defaults with the spec's ``options`` on top."""
     if options is None:
         options = {}
     if not isinstance(options, dict):
         raise _error(
             f"must be a mapping of options (or {{}} for the defaults), got {options!r}", at=name
         )
-    model = search_space(method_options(name))
+    options = dict(options)
+    allowed = method_names()
+    encoder = options.pop("encoder", name)
+    if encoder != name:
+        if not isinstance(encoder, str) or encoder not in encoder_names():
+            raise _error(
+                f"a variant's encoder must be an encoder name; "
+                f"{_suggest(encoder, list(encoder_names()))}allowed: {', '.join(encoder_names())}"
+                f"; got {encoder!r}",
+                at=f"{name}.encoder",
+            )
+        if name in allowed:
+            raise _error(
+                f"{name!r} is a method of its own: name the variant of {encoder!r} otherwise "
+                f"(e.g. {encoder}_{name})",
+                at=name,
+            )
+        if not _VARIANT_RE.match(name) or name == "confirm":
+            raise _error(
+                "a variant's name must be a letter, then letters, digits, '_' or '-' (at most "
+                f"64 characters, not 'confirm'), got {name!r}",
+                at=name,
+            )
+    elif name not in allowed:
+        raise _error(
+            f"unknown method; {_suggest(name, list(allowed))}allowed: {', '.join(allowed)}, "
+            f"or a named variant of an encoder ({name}: {{encoder: conv, ...}})",
+            at=name,
+        )
+    model = search_space(method_options(encoder))
     try:
-        return model.model_validate(options).space()
+        space = model.model_validate(options).space()
     except ValidationError as exc:
         path, message = _format_errors(exc, model)[0]
         raise _error(message, at=f"{name}.{path}") from None
+    return Method(encoder=encoder, space=space)
 
 
 # ---- the spec -------------------------------------------------------------------------------
@@ -457,7 +508,8 @@ class StudySpec(_Strict):
     seed: SeedInt = Field(0, description="samples the plan")
     env: EnvSpec = Field(description="a mapping with name (required), image_size, options")
     methods: dict[str, Any] = Field(
-        description="a mapping from method names (encoder names or 'state') to their options"
+        description="a mapping from method names (encoder names, the controls 'true_reward' "
+        "and 'state', or a variant's name with its 'encoder') to their options"
     )
     trials_per_method: PosInt = Field(description="K >= 1 SAC configurations shared by all methods")
     seeds: Annotated[
@@ -506,17 +558,19 @@ class StudySpec(_Strict):
 
     @field_validator("methods")
     @classmethod
-    def _method_spaces(cls, methods: dict[str, Any]) -> dict[str, dict[str, tuple]]:
-        allowed = method_names()
+    def _methods(cls, methods: dict[str, Any]) -> dict[str, Method]:
         if not methods:
-            raise _error(f"at least one method is required; allowed: {', '.join(allowed)}")
-        for name in methods:
-            if name not in allowed:
-                raise _error(
-                    f"unknown method; {_suggest(name, list(allowed))}allowed: {', '.join(allowed)}",
-                    at=name,
-                )
-        return {name: _method_space(name, options) for name, options in methods.items()}
+            raise _error(f"at least one method is required; allowed: {', '.join(method_names())}")
+        return {str(name): _method(str(name), options) for name, options in methods.items()}
+
+    @field_serializer("methods")
+    def _methods_as_written(self, methods: dict[str, Method]) -> dict[str, dict[str, Any]]:
+        """Each method as a spec writes it (a variant with its ``encoder``), so a dumped
+        spec parses back to the same spec."""
+        return {
+            name: ({} if m.encoder == name else {"encoder": m.encoder}) | m.space
+            for name, m in methods.items()
+        }
 
     @field_validator("storage")
     @classmethod
@@ -552,13 +606,15 @@ class StudySpec(_Strict):
         """On a local run, files the trials need must exist before anything starts."""
         if self.execution.address is not None:
             return self
-        for method, space in self.methods.items():
-            for name, field in hyperparameters(method_options(method)).items():
-                missing = [p for p in space[name] if field.info.file and not Path(p).is_file()]
+        for method_name, method in self.methods.items():
+            for name, field in hyperparameters(method_options(method.encoder)).items():
+                missing = [
+                    p for p in method.space[name] if field.info.file and not Path(p).is_file()
+                ]
                 if missing:
                     raise _error(
                         f"file not found: {missing[0]!r} ({field.info.help})",
-                        at=f"methods.{method}.{name}",
+                        at=f"methods.{method_name}.{name}",
                     )
         return self
 

@@ -236,3 +236,36 @@ def test_bad_names_options_and_inputs_are_clear_errors() -> None:
         encoder.encode(np.zeros((1, 48, 48, 3), np.float32))
     with pytest.raises(ValueError, match="shape"):
         encoder.encode(np.zeros((1, 84, 84, 3), np.uint8))
+
+
+def test_conv_drq_init_is_orthogonal_with_relu_gain_and_zero_biases() -> None:
+    """DrQ's weight_init (denisyarats/drq, facebookresearch/drqv2): each layer's weight,
+    flattened to [out, in*k*k], has orthonormal rows times the gain (sqrt(2) on the convs,
+    1 on the Linear); every bias is zero."""
+    encoder = make_encoder("conv", (48, 48, 3), seed=3, latent_dim=16)
+    assert encoder.options.init == "drq"  # the default: the thesis' CONV
+    layers = [m for m in encoder.net.modules() if isinstance(m, torch.nn.Conv2d | torch.nn.Linear)]
+    assert [type(m).__name__ for m in layers] == ["Conv2d"] * 4 + ["Linear"]
+    for layer in layers:
+        gain = 2**0.5 if isinstance(layer, torch.nn.Conv2d) else 1.0
+        w = layer.weight.detach().reshape(len(layer.weight), -1).double()
+        gram = w @ w.T if w.shape[0] <= w.shape[1] else w.T @ w  # the smaller side
+        eye = torch.eye(len(gram), dtype=torch.double)
+        torch.testing.assert_close(gram, gain**2 * eye, atol=1e-5, rtol=0)  # float32 weights
+        assert not layer.bias.detach().any()
+
+
+def test_conv_init_is_deterministic_per_seed_and_pytorch_init_is_an_option() -> None:
+    x = images(3, 48)
+    drq = [make_encoder("conv", (48, 48, 3), seed=s, latent_dim=8).encode(x) for s in (0, 0, 1)]
+    np.testing.assert_array_equal(drq[0], drq[1])
+    assert not np.allclose(drq[0], drq[2])
+    pytorch = make_encoder("conv", (48, 48, 3), seed=0, latent_dim=8, init="pytorch")
+    assert pytorch.options.init == "pytorch"
+    biases = [m.bias for m in pytorch.net.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert all(b.detach().abs().max() > 0 for b in biases)  # PyTorch's default: random biases
+    again = make_encoder("conv", (48, 48, 3), seed=0, latent_dim=8, init="pytorch")
+    np.testing.assert_array_equal(pytorch.encode(x), again.encode(x))
+    assert not np.allclose(pytorch.encode(x), drq[0])
+    with pytest.raises(ValueError, match=r"'conv' option init must be one of \('drq', 'pytorch'\)"):
+        make_encoder("conv", (48, 48, 3), init="xavier")

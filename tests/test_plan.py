@@ -160,3 +160,46 @@ def test_pinned_hash():
     """The hash covers every trial's config, SAC and method defaults included: a changed
     default or declaration order would orphan every study already running."""
     assert plan_of().hash == "13f1b8a9f4f85146d5cdceeae24f6825c2dd3916006690883ac3a5f894de0545"
+
+
+def test_a_variant_runs_its_encoder_on_the_shared_configs_and_its_encoders_options():
+    methods = {
+        "conv": {"latent_dim": [8, 16, 32]},
+        "conv_pytorch_init": {"encoder": "conv", "init": "pytorch", "latent_dim": [8, 16, 32]},
+        "pixel": {},
+    }
+    plan = plan_of(methods=methods)
+    by_key = {e.key: e for e in plan.entries}
+    assert Counter(e.method for e in plan.entries) == {m: 10 for m in methods}
+    for c in range(5):
+        for seed in (1, 3):
+            base, variant = by_key[f"conv/{c}/{seed}"], by_key[f"conv_pytorch_init/{c}/{seed}"]
+            assert variant.trial_config.method == base.trial_config.method == "conv"
+            assert sac_part(variant) == sac_part(base) == sac_part(by_key[f"pixel/{c}/{seed}"])
+            # the encoder's stream: the same latent size per config, another init
+            assert variant.trial_config.encoder_params == base.trial_config.encoder_params | {
+                "init": "pytorch"
+            }
+            assert variant.params["conv_pytorch_init.init"] == "pytorch"
+            assert variant.trial_config.checkpoint_dir.endswith(f"/conv_pytorch_init/{c}/{seed}")
+
+
+def test_pinned_hashes_of_the_shipped_specs():
+    """Specs without CONV kept their hashes when CONV got its init option (issue 20): the
+    values are the ones the code before it gave; with CONV the trials changed, so did the
+    hash (a study begun with PyTorch's init refuses to resume)."""
+    from conftest import ROOT
+
+    from sweeper.spec import load_spec, load_yaml
+
+    ci = build_plan(load_spec(ROOT / "studies" / "ci.yaml"))
+    assert ci.hash == "830e846cffc46202330169036592bb8d8f81b561df2e82df24eb736a5b768cd5"
+    reach = load_yaml((ROOT / "studies" / "fetch_reach.yaml").read_text())
+    for method in ("conv", "vgg"):
+        del reach["methods"][method]
+    no_conv = build_plan(parse_spec(reach)).hash
+    assert no_conv == "bc734796c18ec7210c261d0741f23eb97ebae6ee880263b51961cd220ca86b28"
+    conv = build_plan(parse_spec(reach | {"methods": {"conv": {}}})).hash
+    assert conv != "d7c89eff6bb13755cadd5c47a4ad6db3385e403860177b1502d16143b8bba39b"  # before
+    cpu = build_plan(load_spec(ROOT / "studies" / "fetch_reach_cpu.yaml"))
+    assert cpu.hash == "1eb028c93daac2f4c3f53562124d592c64add2a8359c79fd4d255b827451a5c7"

@@ -30,6 +30,11 @@ BASE = {
 }
 
 
+def spaces(spec) -> dict:
+    """Each method's search space."""
+    return {name: method.space for name, method in spec.methods.items()}
+
+
 def spec_text(change=None) -> str:
     data = copy.deepcopy(BASE)
     if change:
@@ -64,7 +69,7 @@ def test_shipped_studies_load(name, vgg_weights):
         encoders = {"pixel", "linear", "conv", "vae", "cvae", "vgg"}
         assert set(spec.methods) == encoders | {"true_reward", "state"}  # and the controls
         assert spec.sac.space() == SAC_DEFAULTS  # thesis appendix A.1
-        assert spec.methods["vgg"]["weights_path"] == (str(vgg_weights),)
+        assert spec.methods["vgg"].space["weights_path"] == (str(vgg_weights),)
     if name == "ci":
         assert len(spec.methods) * spec.trials_per_method_total == 2
     scale = {"fetch_reach": (20_000, 20), "sawyer_door": (1_000_000, 8)}
@@ -148,8 +153,53 @@ def test_spec_and_sac_config_accept_the_same_values(name):
 
 
 def test_round_trip_through_json_dump(vgg_weights):
-    spec = load_spec(ROOT / "studies" / "fetch_reach.yaml")
-    assert parse_spec(spec.model_dump(mode="json")) == spec
+    for name in ("fetch_reach", "fetch_reach_cpu"):  # the second has a named variant
+        spec = load_spec(ROOT / "studies" / f"{name}.yaml")
+        assert parse_spec(spec.model_dump(mode="json")) == spec
+
+
+def test_a_named_variant_is_its_encoder_with_fixed_options():
+    data = copy.deepcopy(BASE)
+    data["methods"] = {"conv": {}, "conv_pytorch_init": {"encoder": "conv", "init": "pytorch"}}
+    spec = parse_spec(data)
+    assert spec.methods["conv"].encoder == spec.methods["conv_pytorch_init"].encoder == "conv"
+    assert spaces(spec) == {
+        "conv": {"latent_dim": (128, 256), "init": ("drq",)},
+        "conv_pytorch_init": {"latent_dim": (128, 256), "init": ("pytorch",)},
+    }
+    dumped = spec.model_dump(mode="json")["methods"]
+    assert dumped["conv_pytorch_init"] == {
+        "encoder": "conv",
+        "latent_dim": [128, 256],
+        "init": ["pytorch"],
+    }
+    assert "encoder" not in dumped["conv"]
+    assert parse_spec(data | {"methods": {"conv": {"encoder": "conv"}}}).methods["conv"] == (
+        spec.methods["conv"]
+    )
+
+
+@pytest.mark.parametrize(
+    ("methods", "error"),
+    [
+        ({"conv_x": {"encoder": "cnov"}}, r"methods\.conv_x\.encoder: a variant's encoder must be "
+         r"an encoder name; did you mean 'conv'\?"),
+        ({"conv_x": {"encoder": "state"}}, r"methods\.conv_x\.encoder: .*allowed: pixel, linear"),
+        ({"conv_x": {"encoder": ["conv"]}}, r"methods\.conv_x\.encoder: .*got \['conv'\]"),
+        ({"pixel": {"encoder": "conv"}}, r"methods\.pixel: 'pixel' is a method of its own"),
+        ({"confirm": {"encoder": "conv"}}, r"methods\.confirm: a variant's name must be"),
+        ({"conv/2": {"encoder": "conv"}}, r"methods\.conv/2: a variant's name must be"),
+        ({"conv.2": {"encoder": "conv"}}, r"methods\.conv\.2: a variant's name must be"),
+        ({"c" * 65: {"encoder": "conv"}}, r"a variant's name must be .*at most 64"),
+        ({"conv_x": {"encoder": "conv", "init": "xavier"}},
+         r"methods\.conv_x\.init\[0\]: Input should be one of \('drq', 'pytorch'\)"),
+        ({"conv_x": {"init": "pytorch"}},
+         r"methods\.conv_x: unknown method; .*or a named variant of an encoder"),
+    ],
+)  # fmt: skip
+def test_bad_variants_are_named(methods, error):
+    with pytest.raises(SpecError, match=error):
+        parse_spec(copy.deepcopy(BASE) | {"methods": methods})
 
 
 def test_overrides_are_validated():
@@ -167,7 +217,7 @@ def test_overrides_are_validated():
 def test_true_reward_controls_are_methods_without_options():
     data = copy.deepcopy(BASE)
     data["methods"] = {"true_reward": {}, "state": None, "pixel": {}}
-    assert parse_spec(data).methods == {"true_reward": {}, "state": {}, "pixel": {}}
+    assert spaces(parse_spec(data)) == {"true_reward": {}, "state": {}, "pixel": {}}
     data["methods"] = {"true_reward": {"latent_dim": 8}}
     with pytest.raises(SpecError, match=r"methods\.true_reward\.latent_dim.*allowed: none"):
         parse_spec(data)
@@ -189,25 +239,25 @@ def test_method_spaces_merge_defaults_and_encoder_options(vgg_weights):
     }
     data = copy.deepcopy(BASE)
     data["methods"] = {name: {} for name in (*encoder_names(), "state", "true_reward")}
-    assert parse_spec(data).methods == {  # the default spaces, in the options' order
+    assert spaces(parse_spec(data)) == {  # the default spaces, in the options' order
         "pixel": {},
         "linear": {"latent_dim": (128, 256)},
-        "conv": {"latent_dim": (128, 256)},
+        "conv": {"latent_dim": (128, 256), "init": ("drq",)},
         "vae": vae,
         "cvae": vae,
         "vgg": {"weights_path": (str(vgg_weights),), "input_size": (224,)},
         "state": {},
         "true_reward": {},
     }
-    assert [list(space) for space in parse_spec(data).methods.values()][3] == list(vae)
+    assert [list(space) for space in spaces(parse_spec(data)).values()][3] == list(vae)
     data = copy.deepcopy(BASE)
     data["methods"] = {"vae": {"beta": [2, 4.5], "num_images": 300}, "linear": {}}
     spec = parse_spec(data)
-    vae = spec.methods["vae"]
+    vae = spec.methods["vae"].space
     assert vae["beta"] == (2.0, 4.5) and all(isinstance(b, float) for b in vae["beta"])
     assert vae["num_images"] == (300,)
     assert vae["latent_dim"] == (8, 16)  # sweeper.space default, thesis A.1
-    assert spec.methods["linear"] == {"latent_dim": (128, 256)}
+    assert spec.methods["linear"].space == {"latent_dim": (128, 256)}
 
 
 def test_vgg_weights_from_env_var_or_spec(tmp_path, monkeypatch, vgg_weights):
@@ -216,7 +266,7 @@ def test_vgg_weights_from_env_var_or_spec(tmp_path, monkeypatch, vgg_weights):
     assert VGG_ENV == WEIGHTS_ENV_VAR  # the sweeper reads the variable the encoder reads
     data = copy.deepcopy(BASE)
     data["methods"] = {"vgg": {}}
-    assert parse_spec(data).methods["vgg"]["weights_path"] == (str(vgg_weights),)
+    assert parse_spec(data).methods["vgg"].space["weights_path"] == (str(vgg_weights),)
     monkeypatch.delenv(VGG_ENV)
     with pytest.raises(SpecError, match=rf"methods\.vgg\.weights_path: required.*{VGG_ENV}"):
         parse_spec(data)
@@ -224,7 +274,7 @@ def test_vgg_weights_from_env_var_or_spec(tmp_path, monkeypatch, vgg_weights):
     with pytest.raises(SpecError, match=r"methods\.vgg\.weights_path: file not found"):
         parse_spec(data)
     data["execution"] = {"address": "auto"}  # a cluster: the file lives on the workers
-    assert parse_spec(data).methods["vgg"]["weights_path"] == (str(tmp_path / "missing.pth"),)
+    assert parse_spec(data).methods["vgg"].space["weights_path"] == (str(tmp_path / "missing.pth"),)
 
 
 def test_yaml_follows_the_1_2_core_schema():
