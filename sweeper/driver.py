@@ -394,6 +394,11 @@ class Job:
         return columns
 
 
+def run_order(entry: PlanEntry) -> tuple[int, int, str]:
+    """Where a key starts in a launch: by configuration, then seed, then method."""
+    return (entry.config_id, entry.seed, entry.method)
+
+
 class Driver:
     """The driver loop of a claimed study: hands keys to idle workers, writes what comes
     back (one method per event of ``WorkerPool.poll``), and beats."""
@@ -417,8 +422,11 @@ class Driver:
         self.failed = 0
 
     def run(self, todo: list[tuple[PlanEntry, Any]]) -> int:
-        """Run ``todo`` (plan entries with their WAITING trials); return the exit code."""
-        self.queue.extend(todo)
+        """Run ``todo`` (plan entries with their WAITING trials); return the exit code.
+
+        Keys start round by round, one (config_id, seed) pair of every method per round,
+        so a study stopped part-way is still paired and balanced across its methods."""
+        self.queue.extend(sorted(todo, key=lambda item: run_order(item[0])))
         for entry, _ in todo:
             self.progress.set_state(entry.key, KeyStatus.LEFT)
         try:

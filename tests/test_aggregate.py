@@ -255,6 +255,25 @@ def test_ci_study_aggregates_from_its_storage(ci_study, ci_aggregate):
         assert (out / name).stat().st_size > 10_000, name
     report = (out / "report.md").read_text()
     assert "# Study `ci`" in report and "![AUC per method](auc.png)" in report
+    # one trial per method: the warning stands under the table and beside both figures
+    small = "**Small samples:** pixel (1), linear (1) done trials, fewer than 5"
+    assert report.count(small) == 3
+    assert "(1*)" in report and "fewer than 5 pairs" in report
+
+
+def test_small_samples_are_named_below_five_trials_or_pairs(synthetic):
+    from sweeper.aggregate.report import few_trials_warning
+
+    table = pd.DataFrame({"method": ["a", "b", "c"], "n": [5, 4, 0]})
+    assert few_trials_warning(table) == (
+        "**Small samples:** b (4) done trials, fewer than 5: their intervals are not reliable "
+        "(rliable's guidance: 5 or more runs per method, preferably 10)."
+    )
+    assert few_trials_warning(table.assign(n=[5, 10, 0])) == ""  # none done: no interval
+    _, out = synthetic  # 8 trials and 8 pairs per method (vae: 7 done): no warning
+    report = (out / "report.md").read_text()
+    assert "Small samples" not in report and "fewer than 5 pairs" not in report
+    assert "(7)" in report  # vae's pairs, unmarked
 
 
 def test_a_study_with_nothing_done_yet_aggregates(tmp_path):

@@ -8,6 +8,7 @@ import uuid
 from pathlib import Path
 
 import optuna
+import pandas as pd
 import psycopg
 import pytest
 import ray
@@ -103,6 +104,42 @@ def test_the_image_control_and_the_oracle_are_methods_like_any_other(tmp_path, m
     assert "true_reward" in table and "state" in table
 
 
+def test_a_named_variant_runs_beside_its_encoder_to_aggregate_and_confirm(
+    tmp_path, monkeypatch, capsys
+):
+    monkeypatch.chdir(tmp_path)
+    methods = {
+        "conv": {"latent_dim": 16},
+        "conv_pytorch_init": {"encoder": "conv", "init": "pytorch", "latent_dim": 16},
+    }
+    spec = write_ci_spec(tmp_path / "variant.yaml", methods=methods)
+    assert cli.main(["launch", str(spec)]) == 0
+    trials = {t.user_attrs["key"]: t for t in load("sqlite:///runs/ci/study.db").get_trials()}
+    assert sorted(trials) == ["conv/0/0", "conv_pytorch_init/0/0"]
+    base, variant = trials["conv/0/0"], trials["conv_pytorch_init/0/0"]
+    assert variant.user_attrs["method"] == "conv_pytorch_init"
+    assert variant.params["conv_pytorch_init.init"] == "pytorch"
+    assert base.params["conv.init"] == "drq"
+    for trial in (base, variant):
+        assert trial.state == TrialState.COMPLETE and trial.user_attrs["curve"]["step"] == GRID
+    # the same SAC configuration and seed, another reward encoder: another reward scale
+    assert base.user_attrs["reward_scale"] != variant.user_attrs["reward_scale"]
+
+    capsys.readouterr()
+    assert cli.main(["status", str(spec)]) == 0
+    rows = {line.split()[0]: line.split()[1:] for line in capsys.readouterr().out.splitlines()}
+    assert rows["conv_pytorch_init"] == rows["conv"] == ["1", "1", "0", "0", "0", "0"]
+    assert cli.main(["aggregate", str(spec)]) == 0
+    out = tmp_path / "runs" / "ci" / "aggregate"
+    table = pd.read_csv(out / "auc_table.csv").set_index("method")
+    assert set(table.index) == {"conv", "conv_pytorch_init"} and set(table["n"]) == {1}
+    assert "conv_pytorch_init" in (out / "report.md").read_text()
+
+    assert cli.main(["confirm", str(spec), "--top-k", "1", "--seeds", "1"]) == 0
+    keys = {t.user_attrs["key"] for t in load("sqlite:///runs/ci/study.db").get_trials()}
+    assert keys - set(trials) == {"confirm/conv/0/1", "confirm/conv_pytorch_init/0/1"}
+
+
 def test_launch_on_postgresql(tmp_path):
     schema = f"sweeper_test_{uuid.uuid4().hex[:10]}"
     with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
@@ -195,6 +232,23 @@ def raise_or_diverge(config, report=None):
 def always_succeed(config, report=None):
     report(0, {"success_rate": 0.0, "final_distance": 1.0})
     return fake_result(config, [0.0, 1.0, 1.0, 1.0], [1.0, 0.0, 0.0, 0.0])
+
+
+def test_keys_start_round_by_round_so_a_partial_study_stays_paired(tmp_path):
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    path = write_ci_spec(
+        tmp_path / "ci.yaml", storage=url, trials_per_method=2, seeds=[0, 1], random_episodes=0
+    )
+    spec, plan = prepare(str(path), max_concurrent=1)
+    assert [e.key for e in plan.entries][:2] == ["linear/0/0", "linear/0/1"]  # plan order
+    assert launch(spec, plan, train=always_succeed) == 0
+    started = sorted(load(url).get_trials(), key=lambda t: t.datetime_start)
+    assert [t.user_attrs["key"] for t in started] == [
+        f"{method}/{config}/{seed}"
+        for config in (0, 1)
+        for seed in (0, 1)
+        for method in ("linear", "pixel")
+    ]
 
 
 def test_exception_and_divergence_are_recorded_then_relaunch_reruns_failed(tmp_path, capsys):

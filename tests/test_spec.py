@@ -174,8 +174,9 @@ def test_a_named_variant_is_its_encoder_with_fixed_options():
         "init": ["pytorch"],
     }
     assert "encoder" not in dumped["conv"]
-    assert parse_spec(data | {"methods": {"conv": {"encoder": "conv"}}}).methods["conv"] == (
-        spec.methods["conv"]
+    assert (
+        parse_spec(data | {"methods": {"conv": {"encoder": "conv"}}}).methods["conv"]
+        == (spec.methods["conv"])
     )
 
 

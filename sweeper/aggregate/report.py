@@ -24,6 +24,24 @@ def _interval(row: dict[str, Any], name: str, digits: int = 3) -> str:
     return f"{_fmt(row[name], digits)} [{_fmt(low, digits)}, {_fmt(high, digits)}]"
 
 
+#: fewer done trials (or pairs) than this and an interval is not to be trusted: rliable's
+#: guidance (Agarwal et al. 2021) is at least 5 runs per method, preferably 10
+MIN_RELIABLE = 5
+
+
+def few_trials_warning(table: pd.DataFrame) -> str:
+    """One line naming the methods with fewer than ``MIN_RELIABLE`` done trials (their
+    intervals are not reliable); "" when there are none."""
+    few = [f"{r.method} ({r.n})" for r in table.itertuples() if 0 < r.n < MIN_RELIABLE]
+    if not few:
+        return ""
+    return (
+        f"**Small samples:** {', '.join(few)} done trials, fewer than {MIN_RELIABLE}: their "
+        "intervals are not reliable (rliable's guidance: 5 or more runs per method, "
+        "preferably 10)."
+    )
+
+
 def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame) -> str:
     """The AUC table (ledger, every statistic with its interval, compute, best trial) and
     the probability-of-improvement matrix with intervals, as Markdown."""
@@ -53,6 +71,8 @@ def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame) -> str:
             f"| {row['running']} | {row['failed']} | {row['left']} | {stats} "
             f"| {_fmt(row['std'])} | {compute} | {best} |"
         )
+    if warning := few_trials_warning(table):
+        lines += ["", warning]
     methods = table["method"].tolist()
     if len(methods) > 1:
         lookup = {(r.method, r.versus): r for r in improvement.itertuples()}
@@ -64,6 +84,7 @@ def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame) -> str:
             "| | " + " | ".join(methods) + " |",
             "|---|" + "---:|" * len(methods),
         ]
+        few_pairs = False
         for x in methods:
             cells = []
             for y in methods:
@@ -71,11 +92,19 @@ def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame) -> str:
                 if r is None or not r.pairs:
                     cells.append("–")
                 else:
+                    mark = "*" if r.pairs < MIN_RELIABLE else ""
+                    few_pairs = few_pairs or bool(mark)
                     cells.append(
                         f"{_fmt(r.probability, 2)} [{_fmt(r.low, 2)}, {_fmt(r.high, 2)}] "
-                        f"({r.pairs})"
+                        f"({r.pairs}{mark})"
                     )
             lines.append(f"| {x} | " + " | ".join(cells) + " |")
+        if few_pairs:
+            lines += [
+                "",
+                f"\\* fewer than {MIN_RELIABLE} pairs: that probability and its interval are "
+                "not reliable.",
+            ]
     return "\n".join(lines)
 
 
@@ -113,6 +142,8 @@ def report_markdown(frame: pd.DataFrame, tables: Tables, driver_alive: bool) -> 
             f"{int(table['left'].sum())} left; the statistics cover done trials only.",
             "",
         ]
+    warning = few_trials_warning(table)
+    small = [warning, ""] if warning else []  # repeated beside the figures it concerns
     lines += [
         "## AUC per method",
         "",
@@ -122,6 +153,7 @@ def report_markdown(frame: pd.DataFrame, tables: Tables, driver_alive: bool) -> 
         "",
         "![AUC per method](auc.png)",
         "",
+        *small,
         "## Sample efficiency",
         "",
         f"IQM of the success rate at each evaluation step over the done trials, with "
@@ -129,6 +161,7 @@ def report_markdown(frame: pd.DataFrame, tables: Tables, driver_alive: bool) -> 
         "",
         "![IQM success rate per method](efficiency.png)",
         "",
+        *small,
         "## Performance profiles",
         "",
         "Fraction of a method's done trials whose AUC (left) or final success rate (right) is "
