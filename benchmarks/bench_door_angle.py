@@ -59,6 +59,9 @@ def main() -> None:
     parser.add_argument("--resets", type=int, default=10)
     parser.add_argument("--step", type=float, default=0.03, help="rad toward the goal")
     parser.add_argument("--conv-seeds", default="0,1,2")
+    parser.add_argument(
+        "--conv-init", default="drq", choices=("drq", "pytorch"), help="the conv nets' init"
+    )
     parser.add_argument("--pairs", type=int, default=40, help="Algorithm-1 pairs; 0: skip")
     args = parser.parse_args()
 
@@ -66,7 +69,7 @@ def main() -> None:
     shape = (env.image_size, env.image_size, 3)
     encoders = {"pixel": make_encoder("pixel", shape, seed=0)}
     for seed in map(int, args.conv_seeds.split(",")):
-        encoders[f"conv{seed}"] = make_encoder("conv", shape, seed=seed)
+        encoders[f"conv{seed}"] = make_encoder("conv", shape, seed=seed, init=args.conv_init)
     lowered = dict.fromkeys(encoders, 0)
     try:
         for reset in range(args.resets):

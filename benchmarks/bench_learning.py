@@ -7,7 +7,8 @@
 - ``fetch_reach_pixel``, ``fetch_reach_conv``, ``fetch_reach_linear``: the same trial
   with a learning-free latent reward; PIXEL must reach success >= 0.8 within 20k env
   steps (the thesis: PIXEL and CONV solve FetchReach from images); CONV and LINEAR are
-  reported beside it.
+  reported beside it. ``fetch_reach_conv_pytorch_init``: CONV with PyTorch's default
+  initialisation (the CONV of this project before issue 20) instead of DrQ's.
 - ``point_reach_pixel``: pixel SAC with the pixel reward on point_reach 32x32.
 - ``fetch_reach_pixel_thesis``: the thesis' setting (84x84, 32 filters, batch 256, 2
   updates per step, 20k steps): hours per trial on a CPU, minutes on a GPU
@@ -91,6 +92,10 @@ TASKS: dict[str, tuple[TrialConfig, float]] = {
     "fetch_reach_true_reward": (dataclasses.replace(FETCH_CPU, method="true_reward"), 0.8),
     "fetch_reach_pixel": (FETCH_CPU, 0.8),
     "fetch_reach_conv": (dataclasses.replace(FETCH_CPU, method="conv"), 0.8),
+    "fetch_reach_conv_pytorch_init": (
+        dataclasses.replace(FETCH_CPU, method="conv", encoder_params={"init": "pytorch"}),
+        0.8,
+    ),
     "fetch_reach_linear": (dataclasses.replace(FETCH_CPU, method="linear"), 0.8),
     "fetch_reach_pixel_thesis": (
         dataclasses.replace(

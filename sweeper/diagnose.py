@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from agent.envs import check_env_name, make_env
+from agent.envs import ENV_NAMES, check_env_name, make_env
 from encoders import make_encoder
 from encoders.registry import encoder_class
 from sweeper.frames import env_views
@@ -92,11 +92,24 @@ class Settings:
 DEFAULTS = Settings()
 
 
+class _DefaultsHelp(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows a default only where there is one to show (not for a required option, a flag,
+    an empty list or None, whose help says what happens)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        default = action.default
+        if action.required or default is None or default is False or default == []:
+            return action.help
+        return super()._get_help_string(action)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``sweeper diagnose`` (it takes no spec)."""
-    parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
+    parser.formatter_class = _DefaultsHelp
     parser.epilog = "Writes one CSV and PNG per analysis and summary.csv per env."
-    parser.add_argument("--env", required=True, help="env name(s), comma-separated")
+    parser.add_argument(
+        "--env", required=True, help=f"env name(s), comma-separated: {', '.join(ENV_NAMES)}"
+    )
     parser.add_argument(
         "--encoders", default="pixel,linear,conv", help="encoder names, comma-separated"
     )
@@ -114,7 +127,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", default="runs/diagnostics/{env}", help="output directory; {env} is the env name"
     )
     parser.add_argument("--image-size", type=int, default=None, help="default: the env's")
-    parser.add_argument("--seed", type=int, default=DEFAULTS.seed)
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=DEFAULTS.seed,
+        help="seeds the encoders' random weights, the envs and every sample of states",
+    )
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument(

@@ -58,6 +58,16 @@ from encoders.options import (
 )
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+#: limits that keep every input within what the filesystem, the database and this
+#: machine hold: a study name is a path component (``<study>-<16 hex>`` checkpoint folders,
+#: 255 bytes at most); a trial's curve is held in memory and stored as one JSON attr; the
+#: plan is built and synced whole; a spec is a few kB of YAML
+MAX_STUDY_NAME = 128
+MAX_ENV_STEPS = 10**9
+MAX_GRID_POINTS = 10_000
+MAX_PLAN_KEYS = 20_000
+MAX_SPEC_BYTES = 1 << 20
 _URL_RE = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 
 
@@ -442,13 +452,22 @@ class SACSpace(search_space(SACConfig)):
 class Budget(_Strict):
     """What one trial runs: env steps and the evaluation grid 0, eval_every, ..., env_steps."""
 
-    env_steps: PosInt = Field(description="env steps per trial, an integer >= 1")
+    env_steps: Annotated[int, Strict(), Field(ge=1, le=MAX_ENV_STEPS)] = Field(
+        description=f"env steps per trial, an integer in [1, {MAX_ENV_STEPS:.0e}]"
+    )
     seed_steps: NonNegInt = Field(1000, description="random-action steps before learning")
     eval_every: PosInt = Field(1000, description="env steps between evaluations")
     eval_episodes: PosInt = Field(10, description="episodes per evaluation")
 
     @model_validator(mode="after")
     def _grid(self) -> Budget:
+        points = self.env_steps // self.eval_every
+        if points > MAX_GRID_POINTS:
+            raise _error(
+                f"gives {points} evaluations per trial (env_steps / eval_every), more than "
+                f"the {MAX_GRID_POINTS} a trial's curve may hold: evaluate less often",
+                at="eval_every",
+            )
         if self.env_steps % self.eval_every:
             raise _error(
                 f"must divide env_steps ({self.env_steps}) so the grid ends at env_steps, "
@@ -550,6 +569,11 @@ class StudySpec(_Strict):
     @field_validator("study")
     @classmethod
     def _study_name(cls, study: str) -> str:
+        if len(study) > MAX_STUDY_NAME:
+            raise _error(
+                f"must be at most {MAX_STUDY_NAME} characters (it names files and folders), "
+                f"got {len(study)}"
+            )
         if not _NAME_RE.match(study) or study.startswith("."):
             raise _error(
                 f"must be letters, digits, '_', '.', '-' (not starting with '.'), got {study!r}"
@@ -581,6 +605,18 @@ class StudySpec(_Strict):
                 f"postgresql+psycopg://user@host/db, or null; got {storage!r}"
             )
         return storage
+
+    @model_validator(mode="after")
+    def _plan_size(self) -> StudySpec:
+        keys = len(self.methods) * self.trials_per_method_total
+        if keys > MAX_PLAN_KEYS:
+            raise _error(
+                f"{len(self.methods)} methods x {self.trials_per_method} configurations x "
+                f"{len(self.seeds)} seeds = {keys} trials, more than the {MAX_PLAN_KEYS} a "
+                "plan may hold: split the study",
+                at="trials_per_method",
+            )
+        return self
 
     @model_validator(mode="after")
     def _videos_on_grid(self) -> StudySpec:
@@ -725,6 +761,11 @@ def load_spec(path: str | os.PathLike[str]) -> StudySpec:
     """Read and validate a YAML study spec; raise ``SpecError`` on any problem."""
     path = Path(path)
     try:
+        if path.stat().st_size > MAX_SPEC_BYTES:
+            raise SpecError(
+                f"{path}: a spec file must be at most {MAX_SPEC_BYTES >> 20} MiB, got "
+                f"{path.stat().st_size / 2**20:.1f} MiB"
+            )
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)

@@ -346,6 +346,17 @@ def test_cli_start_choices(capsys) -> None:
     assert "invalid choice: 'box'" in capsys.readouterr().err
 
 
+def test_diagnose_help_shows_real_defaults_and_the_env_names(capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["diagnose", "--help"])
+    assert exit_info.value.code == 0
+    out = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    assert "(default: None)" not in out and "(default: [])" not in out
+    assert "(default: first two)" in out and "(default: first two) (default" not in out
+    assert "comma-separated: point_reach, fetch_reach, fetch_push, sawyer_door" in out
+    assert "--seed SEED seeds the encoders' random weights" in out and "(default: 0)" in out
+
+
 def test_cli_on_fetch_push(tmp_path) -> None:
     code = main(["diagnose", "--env", "fetch_push", "--encoders", "pixel", "--image-size", "32",
                  "--out", str(tmp_path), *SMALL])  # fmt: skip

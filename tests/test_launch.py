@@ -165,6 +165,11 @@ def test_launch_on_postgresql(tmp_path):
         ({"methods": {"pixel": {}, "linear": {"latent_dims": 8}}}, "methods.linear.latent_dims"),
         ({"storage": "postgresql://postgres@127.0.0.1:1/test"}, "storage"),
         ({"storage": "sqlite:///:memory:"}, "storage"),
+        # each within what the filesystem, the database and the machine hold (issue 22)
+        ({"study": "s" * 300}, "study"),
+        ({"budget": {"env_steps": 10**12}}, "budget.env_steps"),
+        ({"budget": {"env_steps": 10**8, "eval_every": 100}}, "budget.eval_every"),
+        ({"trials_per_method": 2, "seeds": list(range(6000))}, "trials_per_method"),
     ],
 )
 def test_bad_input_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys, change, field):
@@ -175,6 +180,10 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys, cha
     assert len(err.splitlines()) == 1
     assert err.startswith("sweeper launch: ") and field in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.yaml"]
+    if "storage" not in change:  # a bad spec is one line for a reader too
+        assert cli.main(["status", str(spec)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and field in err
 
 
 def test_launch_refuses_another_plan(tmp_path, monkeypatch, capsys):

@@ -278,6 +278,12 @@ def test_vgg_weights_from_env_var_or_spec(tmp_path, monkeypatch, vgg_weights):
     assert parse_spec(data).methods["vgg"].space["weights_path"] == (str(tmp_path / "missing.pth"),)
 
 
+def test_a_spec_file_over_a_mebibyte_is_refused_before_it_is_parsed(tmp_path):
+    path = write(tmp_path, spec_text() + "# " + "x" * (1 << 20) + "\n")
+    with pytest.raises(SpecError, match=r"a spec file must be at most 1 MiB, got 1\.0 MiB"):
+        load_spec(path)
+
+
 def test_yaml_follows_the_1_2_core_schema():
     data = load_yaml(
         "a: 1e-4\nb: 010\nc: no\nd: 1_000_000\ne: 0x10\nf: 2024-01-01\ng: 1:30\nh: ~\ni: True\n"
