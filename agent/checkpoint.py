@@ -27,7 +27,7 @@ import torch
 from agent import storage_io
 from agent.config import RUNTIME_FIELDS, TrialConfig
 
-FILENAME = "checkpoint.pt"
+FILENAME = storage_io.CHECKPOINT_FILE
 FORMAT = 1
 #: a failed write's errno -> what is wrong with the directory, what to do about it
 _WRITE_PROBLEMS = {

@@ -27,6 +27,10 @@ from typing import Any, BinaryIO
 _URI_RE = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 
 
+#: the file a trial's checkpoint is in, inside its ``checkpoint_dir`` (``agent.checkpoint``)
+CHECKPOINT_FILE = "checkpoint.pt"
+
+
 def is_uri(location: str) -> bool:
     """True for ``scheme://...`` locations other than ``file://``."""
     return bool(_URI_RE.match(location)) and not location.startswith("file://")
@@ -104,6 +108,14 @@ def write_atomic(location: str, write: Callable[[BinaryIO], object]) -> None:
         os.fsync(dir_fd)
     finally:
         os.close(dir_fd)
+
+
+def exists(location: str) -> bool:
+    """Whether there is a file or folder at ``location``."""
+    if is_uri(location):
+        fs, path = _filesystem(location)
+        return bool(fs.exists(path))
+    return _local(location).exists()
 
 
 def remove(location: str) -> None:

@@ -40,7 +40,7 @@ import ray
 from agent.config import Outcome, TrialResult
 from agent.envs import env_class
 from agent.metrics import metric_key
-from agent.storage_io import is_uri, remove
+from agent.storage_io import CHECKPOINT_FILE, exists, is_uri, join, remove
 from sweeper import random_agent
 from sweeper.artifacts import ArtifactStore, artifact_location, upload_once
 from sweeper.execution import (
@@ -539,9 +539,16 @@ class Driver:
             with contextlib.suppress(Exception):
                 self.store.interrupt(job.trial_id, "stopped by the user", None)
         self.progress.close()
+        resumable = sum(has_checkpoint(job.entry) for job in self.jobs.values())
+        fresh = len(self.jobs) - resumable
         print(
-            f"\nsweeper launch: stopped; {len(self.jobs)} trial(s) in flight were interrupted "
-            "and resume from their checkpoints when you launch again",
+            f"\nsweeper launch: stopped; {len(self.jobs)} trial(s) in flight were interrupted; "
+            f"the next launch resumes {resumable} from their checkpoints"
+            + (
+                f" and starts {fresh} again from step 0 (no checkpoint written yet)"
+                if fresh
+                else ""
+            ),
             file=self.stream,
         )
         return EXIT_INTERRUPTED
@@ -585,6 +592,15 @@ def record_result(store: StudyStore, job: Job, result: TrialResult) -> None:
         attrs["diverged_step"] = result.diverged_step
         attrs["diverged_loss"] = result.diverged_loss
     store.complete(job.trial_id, result.auc, attrs)
+
+
+def has_checkpoint(entry: PlanEntry) -> bool:
+    """Whether the trial of ``entry`` has written a checkpoint (a relaunch resumes it)."""
+    location = entry.trial_config.checkpoint_dir
+    try:
+        return location is not None and exists(join(location, CHECKPOINT_FILE))
+    except Exception:  # an unreachable object store: say nothing was kept
+        return False
 
 
 def remove_checkpoint(entry: PlanEntry, progress: LaunchProgress) -> None:

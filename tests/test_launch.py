@@ -561,3 +561,32 @@ def test_the_driver_measures_the_random_agent_once_per_study(tmp_path, monkeypat
     spec, plan = prepare(str(write_ci_spec(tmp_path / "none.yaml", storage=url, random_episodes=0)))
     assert launch(spec, plan, train=always_succeed) == 0
     assert "random_agent" not in load(url).user_attrs
+
+
+def test_an_interrupted_launch_says_which_trials_resume_from_a_checkpoint(tmp_path):
+    """Issue 21: Ctrl-C before any checkpoint was written said every trial would resume."""
+    import io
+    import types
+
+    from sweeper.driver import Driver, Job
+
+    path = write_ci_spec(tmp_path / "ci.yaml", checkpoints=str(tmp_path / "ck"))
+    spec, plan = prepare(str(path))
+    interrupted = []
+    store = types.SimpleNamespace(interrupt=lambda trial_id, why, _: interrupted.append(trial_id))
+    pool = types.SimpleNamespace(shutdown=lambda: None)
+    progress = types.SimpleNamespace(close=lambda: None)
+    stream = io.StringIO()
+    driver = Driver(spec, store, pool, progress, beat=None, stream=stream)
+    for number, entry in enumerate(plan.entries):
+        driver.jobs[entry.key] = Job(entry, trial_id=number, number=number)
+    written = Path(plan.entries[0].trial_config.checkpoint_dir)
+    written.mkdir(parents=True)
+    (written / "checkpoint.pt").write_bytes(b"state")
+    assert driver.stop() == 130
+    assert interrupted == [0, 1]
+    assert stream.getvalue().strip() == (
+        "sweeper launch: stopped; 2 trial(s) in flight were interrupted; the next launch "
+        "resumes 1 from their checkpoints and starts 1 again from step 0 (no checkpoint "
+        "written yet)"
+    )

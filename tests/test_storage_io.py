@@ -70,3 +70,11 @@ def test_uri_detection_and_join():
 def test_unknown_scheme_is_a_clear_error():
     with pytest.raises(ValueError, match=r"nosuchscheme://bucket/checkpoint\.pt"):
         write_bytes_atomic("nosuchscheme://bucket/checkpoint.pt", b"x")
+
+
+def test_exists_on_a_path_and_a_uri(tmp_path):
+    from agent.storage_io import exists
+
+    assert not exists(str(tmp_path / "none")) and not exists(f"local://{tmp_path}/none")
+    (tmp_path / "there").write_bytes(b"x")
+    assert exists(str(tmp_path / "there")) and exists(f"local://{tmp_path}/there")
