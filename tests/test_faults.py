@@ -341,7 +341,7 @@ CONFIRMER = """
 import sys, time, zlib
 from pathlib import Path
 from agent.config import TrialResult
-from sweeper.confirm import confirm
+from sweeper.confirmation import confirm
 from sweeper.driver import launch, prepare
 
 spec_path, address, stage = sys.argv[1], sys.argv[2], sys.argv[3]

@@ -20,16 +20,20 @@ import sys
 from sweeper import cli
 try:
     cli.main(sys.argv[1:])
-except SystemExit:
-    pass
-print([m for m in ("torch", "ray", "optuna", "mujoco", "matplotlib") if m in sys.modules],
+    code = "returned"
+except SystemExit as exit:
+    code = exit.code
+print(code, [m for m in ("torch", "ray", "optuna", "mujoco", "matplotlib") if m in sys.modules],
       file=sys.stderr)
 """
 
+COMMANDS = ["launch", "status", "aggregate", "confirm", "dashboard", "diagnose"]
 
-@pytest.mark.parametrize("command", [[], ["diagnose"], ["launch"], ["status"]])
+
+@pytest.mark.parametrize("command", [[], *([c] for c in COMMANDS)])
 def test_help_is_light(command):
-    """`sweeper --help` imports no torch, Ray, Optuna, MuJoCo or matplotlib."""
+    """`sweeper [COMMAND] --help` prints the usage, exits 0 and imports no torch, Ray,
+    Optuna, MuJoCo or matplotlib."""
     done = subprocess.run(
         [sys.executable, "-c", LIGHT_HELP, *command, "--help"],
         cwd=ROOT,
@@ -38,7 +42,10 @@ def test_help_is_light(command):
         timeout=120,
         check=True,
     )
-    assert done.stderr.strip().splitlines()[-1] == "[]", done.stderr
+    assert done.stderr.strip().splitlines()[-1] == "0 []", done.stderr
+    assert done.stdout.startswith(f"usage: sweeper {' '.join(command)}".rstrip()), done.stdout
+    for other in COMMANDS if not command else []:  # the top-level help lists every command
+        assert other in done.stdout
 
 
 def test_a_read_only_database_exits_2_before_ray_starts(tmp_path, monkeypatch, capsys):
