@@ -59,13 +59,41 @@ def test_registry_lists_the_six_encoders() -> None:
     assert dataclasses.asdict(encoder_options("linear")()) == {"latent_dim": 128}
 
 
+#: a value other than the default for every declared option of every encoder
+NON_DEFAULT = {
+    "pixel": {},
+    "linear": {"latent_dim": 7},
+    "conv": {"latent_dim": 7, "init": "pytorch"},
+    "vae": {"latent_dim": 8, "beta": 2.5, "lr": 2e-3, "epochs": 2, "num_images": 9,
+            "batch_size": 3},
+    "cvae": {"latent_dim": 8, "beta": 2.5, "lr": 2e-3, "epochs": 2, "num_images": 9,
+             "batch_size": 3},
+    "vgg": {"input_size": 64},
+}  # fmt: skip
+
+
 @pytest.mark.parametrize("name", ["pixel", "linear", "conv", "vae", "cvae", "vgg"])
 def test_an_encoder_is_built_with_its_declared_options(name: str, vgg_weights) -> None:
-    given = {"weights_path": vgg_weights, "input_size": 64} if name == "vgg" else {}
+    given = dict(NON_DEFAULT[name], **({"weights_path": vgg_weights} if name == "vgg" else {}))
+    declared = dataclasses.fields(encoder_options(name))
+    assert {f.name for f in declared} == set(given), "give every option a non-default value"
+    for field in declared:
+        assert field.name == "weights_path" or given[field.name] != field.default, field.name
     encoder = make_encoder(name, (48, 48, 3), **given)
     assert encoder.options == encoder_options(name)(**given)
-    for option, value in dataclasses.asdict(encoder.options).items():
-        assert getattr(encoder, option, value) == value, option  # what the encoder reads
+    # what the encoder does with them
+    if "latent_dim" in given:
+        assert encoder.dim == given["latent_dim"]
+    if name == "conv":  # PyTorch's init: random biases (DrQ's: zero)
+        assert encoder.net[0][0].bias.detach().abs().max() > 0
+    if name in ("vae", "cvae"):
+        assert encoder.num_images == 9 and (encoder.beta, encoder.lr) == (2.5, 2e-3)
+        report = encoder.fit(images(7, 48), progress=False)
+        assert report.epochs == 2 and len(report.losses) == 2
+        assert encoder.batch_size == 3
+    if name == "vgg":
+        assert encoder.dim == 512 * 2 * 2  # 64 / 2^5 = 2 per side
+        assert encoder.encode(images(1, 48)).shape == (1, 2048)
 
 
 def test_a_registered_encoder_without_declared_options_takes_none() -> None:
