@@ -13,7 +13,7 @@ import pandas as pd
 
 from encoders import diagnostics as dx
 from encoders.diagnostics import plots
-from sweeper.diagnose import ARM_OBJECT_ENVS, Settings, grid_dims
+from sweeper.diagnose_settings import ARM_OBJECT_ENVS, Settings, grid_dims
 
 
 @dataclass(frozen=True)

@@ -56,6 +56,7 @@ from sweeper.aggregate.frame import (
     study_info,
     trial_rows,
 )
+from sweeper.aggregate.pictures import report_pictures
 from sweeper.aggregate.report import confirm_markdown, report_markdown, table_markdown
 from sweeper.aggregate.tables import (
     AUC_COLUMNS,
@@ -217,9 +218,9 @@ def aggregate(
 ) -> AggregateResult:
     """Read the study, compute curves and statistics, write CSV, PNG and the report to
     ``out``; with ``dashboard``, also save the comparison into the study; with the study's
-    ``artifacts`` location, add pictures to the report (``sweeper.frames``). The study is
-    read read-only; a study that cannot be written (read-only media) gets a warning, not
-    the comparison."""
+    ``artifacts`` location, add pictures to the report (``sweeper.aggregate.pictures``).
+    The study is read read-only; a study that cannot be written (read-only media) gets a
+    warning, not the comparison."""
     say = progress or (lambda message: print(message, file=sys.stderr, flush=True))
     start = time.perf_counter()
     frame = load_study_frame(storage_url, study_name)
@@ -241,9 +242,7 @@ def aggregate(
             files.append(out / "confirm_table.csv")
             seeds = len(study_info(frame).attrs["confirm"]["seeds"])
             text += "\n" + confirm_markdown(confirm, seeds)
-        if artifacts is not None:  # final frames per method, the env's view (sweeper.frames)
-            from sweeper.frames import report_pictures
-
+        if artifacts is not None:  # final frames per method, the env's view
             text += report_pictures(search, store.storage, artifacts, out)
     report = out / "report.md"
     report.write_text(text, encoding="utf-8")
