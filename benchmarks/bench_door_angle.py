@@ -9,14 +9,16 @@ rise from the first step; one that falls there points the wrong way exactly wher
 episode starts, which is what Algorithm 1's gradient agreement (``sweeper diagnose``)
 averages over.
 
-Measured (default camera, 48x48, 10 resets, step 0.03 rad):
+Measured (default camera, 48x48, 10 resets, step 0.03 rad; conv nets of seeds 0-2 with
+DrQ's initialisation, the default, and with ``--conv-init pytorch``):
 
     pixel  7/10 resets: opening toward the goal lowers the reward
-    conv0  7/10   conv1  8/10   conv2  9/10   (random conv nets, seeds 0-2)
+    conv0  9/10   conv1  8/10   conv2  4/10   (DrQ's init)
+    conv0  7/10   conv1  8/10   conv2  9/10   (PyTorch's init)
 
 At reset 0 the pixel reward falls for the first ~0.05 rad of opening, is back to the
 closed door's value only at ~0.2 rad and rises beyond (the goal is ~0.5 rad); the conv
-rewards are back only at ~0.3-0.4 rad. A likely reason, not yet tested: from the
+rewards (PyTorch's init) are back only at ~0.3-0.4 rad. A likely reason, not yet tested: from the
 top-down default camera the door is a thin slab, and two thin slabs at different angles
 share few pixels until they nearly overlap.
 
@@ -25,12 +27,15 @@ by state dimension: for each reward, d, how often the sign of the latent gradien
 with the true one per dimension, and d over the hand's three dimensions alone. Measured:
 
     pixel  d 0.75 | sign right x 0.72 y 0.90 z 0.65 angle 0.35 | hand-only d 0.21
-    conv0  d 1.32 | sign right x 0.50 y 0.65 z 0.47 angle 0.15 | hand-only d 0.87
-    conv1  d 1.45 | sign right x 0.40 y 0.53 z 0.42 angle 0.17 | hand-only d 1.07
-    conv2  d 0.88 | sign right x 0.70 y 0.85 z 0.45 angle 0.25 | hand-only d 0.25
+    conv0  d 0.82 | sign right x 0.72 y 0.65 z 0.47 angle 0.45 | hand-only d 0.61  (DrQ)
+    conv1  d 1.44 | sign right x 0.62 y 0.62 z 0.62 angle 0.10 | hand-only d 0.69  (DrQ)
+    conv2  d 0.46 | sign right x 0.82 y 0.90 z 0.68 angle 0.68 | hand-only d 0.21  (DrQ)
+    conv0  d 1.32 | sign right x 0.50 y 0.65 z 0.47 angle 0.15 | hand-only d 0.87  (PyTorch)
+    conv1  d 1.45 | sign right x 0.40 y 0.53 z 0.42 angle 0.17 | hand-only d 1.07  (PyTorch)
+    conv2  d 0.88 | sign right x 0.70 y 0.85 z 0.45 angle 0.25 | hand-only d 0.25  (PyTorch)
 
 Run: ``./run python benchmarks/bench_door_angle.py [--resets 10] [--step 0.03]
-[--conv-seeds 0,1,2] [--pairs 40]``
+[--conv-seeds 0,1,2] [--conv-init drq|pytorch] [--pairs 40]``
 """
 
 from __future__ import annotations

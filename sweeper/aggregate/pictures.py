@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import optuna
 import pandas as pd
 
 from sweeper.aggregate.frame import methods_of, scored, study_info, trial_rows
 from sweeper.frames import env_views, labelled, save_png, side_by_side, stacked
+
+if TYPE_CHECKING:
+    import optuna
 
 _VIDEO_RE = re.compile(r"^episode-step(\d+)\.(mp4|gif)$")
 
