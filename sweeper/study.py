@@ -3,11 +3,13 @@
 
 ``open_study`` is a context manager: it opens the storage, finds (or, for the driver,
 creates) the study, checks its plan hash, and disposes of the engine on exit. A reader's
-connections are read-only (``sweeper.storage.read_only_engine_kwargs``): it never writes,
-and reads a finished SQLite study on read-only media. ``read_rows`` is the fast reader of
-a whole study: one SQL query per Optuna table, not one per trial. The study's rules (the
-current trial of a key, the per-key ledger) are ``sweeper.storage``'s ``current_numbers``,
-``current_trials``, ``key_status``, ``tally`` and ``ledger``.
+connections are read-only (``sweeper.storage.urls.read_only_engine_kwargs``): it never
+writes, and reads a finished SQLite study on read-only media. ``read_rows`` is the fast
+reader of a whole study: one SQL query per Optuna table, not one per trial. The study's
+rules (the current trial of a key, the per-key ledger) are ``sweeper.storage.ledger``'s
+``current_numbers``, ``current_trials``, ``key_status``, ``tally`` and ``ledger``. This
+module sits above ``sweeper.storage``: it uses its URLs, errors and ``StudyStore``, and
+nothing there imports it.
 
 Nothing to read (no database file, a database without Optuna's tables, no study of that
 name) is a ``NoStudy``, whose message says how to create the study.
@@ -20,18 +22,9 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from sweeper.storage import (
-    STORAGE_GRACE,
-    StorageError,
-    StudyStore,
-    database_error,
-    open_storage,
-    plan_mismatch,
-    read_only_engine_kwargs,
-    redact,
-    resolve_url,
-    sqlite_path,
-)
+from sweeper.storage.errors import StorageError, database_error, plan_mismatch, redact
+from sweeper.storage.urls import open_storage, read_only_engine_kwargs, resolve_url, sqlite_path
+from sweeper.storage.writer import STORAGE_GRACE, StudyStore
 
 if TYPE_CHECKING:  # pandas and sqlalchemy are imported where used: `sweeper --help` stays light
     import pandas as pd

@@ -344,7 +344,8 @@ def test_sync_repairs_orphans_of_an_interrupted_setup(sqlite_url):
 TAKEOVER = """
 import sys
 from sweeper import storage
-storage.DRIVER_STALE_SECONDS = 0.0
+from sweeper.storage import writer
+writer.DRIVER_STALE_SECONDS = 0.0
 store = storage.StudyStore.find(storage.open_storage(sys.argv[1], create=False), "big")
 try:
     store.claim_driver()

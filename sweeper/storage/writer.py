@@ -1,12 +1,13 @@
-"""The study database: one Optuna study per spec, written only by the sweep driver.
+"""The study's one writer, the sweep driver: ``StudyStore`` and the driver's claim.
 
-Conventions (docs/architecture.md, "Storage conventions"): one Optuna trial per plan key
-``"{method}/{config_id}/{seed}"``; a key that has to be run again (its driver died, it was
-interrupted, or it failed) gets a fresh trial, and the trial with the highest number is the
-key's *current* trial. ``ledger`` counts keys, never trials, so the counts are exact.
-
-SQLite files are switched to WAL journal mode and opened with a long busy timeout, so
-optuna-dashboard (or ``sweeper status``) can read a study while the driver writes it.
+``StudyStore`` is the driver's handle on one study (readers get one from
+``sweeper.study.open_study`` too, and only read): creating the study, claiming it as its
+one driver in a transaction that holds the study's lock, the ``Heartbeat`` thread that
+keeps the claim fresh, ``sync`` (a WAITING current trial for every plan key not done, in
+one transaction), and every trial's start, reports, completion or failure. A write that
+meets a database outage is tried again for up to ``grace`` seconds (``retried``). A driver
+record is judged live by ``driver_alive``: on its host by its process, elsewhere by its
+heartbeat.
 """
 
 from __future__ import annotations
@@ -18,26 +19,28 @@ import math
 import os
 import secrets
 import socket
-import sqlite3
-import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
-from enum import StrEnum
-from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from agent.config import Outcome
+from sweeper.storage.errors import (
+    StorageError,
+    StudyBusy,
+    is_database_error,
+    is_outage,
+    plan_mismatch,
+    write_error,
+)
+from sweeper.storage.ledger import current_trials
 
 if TYPE_CHECKING:  # optuna and sqlalchemy are imported where used: `sweeper --help` stays light
     import optuna
     from optuna.trial import FrozenTrial
     from sqlalchemy.engine import Connection
 
-#: seconds a SQLite connection waits for a lock before giving up
-SQLITE_TIMEOUT = 60.0
 #: a driver whose heartbeat is older than this is considered dead
 DRIVER_STALE_SECONDS = 60.0
 #: seconds the driver retries a write while the database is unreachable (the default of
@@ -45,403 +48,11 @@ DRIVER_STALE_SECONDS = 60.0
 STORAGE_GRACE = 60.0
 #: the longest wait between two tries of a write during an outage
 RETRY_MAX_DELAY = 5.0
-#: distributions whose versions the study records
-VERSIONED_PACKAGES = (
-    "gcrl-sweeper",
-    "torch",
-    "numpy",
-    "mujoco",
-    "gymnasium",
-    "gymnasium-robotics",
-    "metaworld",
-    "optuna",
-    "ray",
-    "sqlalchemy",
-)
-
-
-class StorageError(ValueError):
-    """A storage URL that cannot be used, or a study that does not match its spec."""
-
-
-class StudyBusy(RuntimeError):
-    """Another live driver runs the study."""
-
-
-def resolve_url(url: str) -> str:
-    """The SQLAlchemy URL to connect with.
-
-    ``postgresql://`` means psycopg 3 here (the installed driver); SQLAlchemy would pick
-    psycopg2, which is not installed.
-    """
-    if url.startswith("postgresql://") or url.startswith("postgres://"):
-        return "postgresql+psycopg://" + url.split("://", 1)[1]
-    return url
-
-
-def redact(url: str) -> str:
-    """``url`` without its password, for messages."""
-    from sqlalchemy.engine import make_url
-
-    try:
-        return make_url(url).render_as_string(hide_password=True)
-    except Exception:
-        return url.split("@")[-1]
-
-
-def database_error(action: str, url: str, error: BaseException) -> StorageError:
-    """``storage: {action} {url}: {reason}`` for an error the database raised, on one line:
-    the driver's own message (SQLAlchemy keeps it as ``orig``), first line, password hidden.
-    """
-    return StorageError(f"storage: {action} {redact(url)}: {reason_of(error)}")
-
-
-def reason_of(error: BaseException) -> str:
-    """The database driver's own message of ``error``, first line. Optuna wraps every
-    SQLAlchemy error of a commit in a StorageInternalError whose text ("... e.g. exceeding
-    max length") guesses wrong; the cause it wraps says what happened."""
-    cause = database_cause(error)
-    text = str(getattr(cause, "orig", None) or cause).strip()
-    return text.splitlines()[0] if text else type(cause).__name__
-
-
-def database_cause(error: BaseException) -> BaseException:
-    """``error`` without Optuna's StorageInternalError around it."""
-    while type(error).__name__ == "StorageInternalError" and error.__cause__ is not None:
-        error = error.__cause__
-    return error
-
-
-def is_database_error(error: BaseException) -> bool:
-    """Whether the database (or the connection to it) raised ``error``."""
-    from sqlalchemy.exc import SQLAlchemyError
-
-    return isinstance(database_cause(error), SQLAlchemyError | sqlite3.Error)
-
-
-def is_outage(error: BaseException) -> bool:
-    """Whether ``error`` is a lost, refused or busy connection, which a retry may get past,
-    rather than a fault of the database itself (a full disk, a read-only file, bad data).
-
-    PostgreSQL: errors without an SQLSTATE (the client could not connect or lost the
-    connection), class 08 (connection exception), 57P (the server shuts down or starts up)
-    and 40 (a deadlock or serialisation failure: the transaction was rolled back). SQLite:
-    a lock that outlasted the busy timeout.
-    """
-    from sqlalchemy.exc import DBAPIError
-
-    cause = database_cause(error)
-    if isinstance(cause, DBAPIError) and cause.connection_invalidated:
-        return True
-    orig = getattr(cause, "orig", cause)
-    if isinstance(orig, sqlite3.OperationalError):
-        return "database is locked" in str(orig)
-    if type(orig).__module__.startswith("psycopg"):
-        state = getattr(orig, "sqlstate", None)
-        return state is None or state.startswith(("08", "57P", "40"))
-    return False
-
-
-def write_error(url: str, error: BaseException, grace: float) -> StorageError:
-    """The one-line StorageError of a write the database refused, naming the cause and the
-    fix; the trials in flight stay RUNNING and the next launch resumes them."""
-    reason = reason_of(error)
-    where = redact(url)
-    resume = "launch again to resume the trials in flight"
-    state = getattr(getattr(database_cause(error), "orig", None), "sqlstate", None)
-    if "disk is full" in reason or state == "53100":  # SQLite's and PostgreSQL's full disk
-        return StorageError(
-            f"storage: cannot write {where}: its disk is full ({reason}); free space, then {resume}"
-        )
-    if "readonly" in reason or "read-only" in reason:
-        return StorageError(
-            f"storage: cannot write {where}: it is read-only ({reason}); make it writable or "
-            f"give another --storage, then {resume}"
-        )
-    if is_outage(error):
-        return StorageError(
-            f"storage: lost {where} for over {grace:g} s (execution.storage_grace): {reason}; "
-            f"bring the database back, then {resume}"
-        )
-    return StorageError(f"storage: cannot use {where}: {reason}")
-
-
-def sqlite_path(url: str) -> Path | None:
-    """The file of a ``sqlite:///`` URL, None for other backends."""
-    from sqlalchemy.engine import make_url
-
-    parsed = make_url(url)
-    if parsed.get_backend_name() != "sqlite":
-        return None
-    if not parsed.database or parsed.database == ":memory:":
-        raise StorageError(
-            f"storage: {url!r} is an in-memory SQLite database, which loses the study when "
-            "the driver exits; give a file, e.g. sqlite:///runs/study.db"
-        )
-    return Path(parsed.database)
-
-
-def check_storage(url: str) -> None:
-    """Raise a StorageError naming ``storage`` unless ``url`` can be used; write nothing.
-
-    SQLite: the file's directory must exist or be creatable, and be writable. Any other
-    backend: a connection is opened and ``SELECT 1`` run.
-    """
-    from sqlalchemy import create_engine, text
-    from sqlalchemy.exc import ArgumentError, NoSuchModuleError
-
-    try:
-        path = sqlite_path(resolve_url(url))
-    except (ArgumentError, ValueError) as e:
-        if isinstance(e, StorageError):
-            raise
-        raise StorageError(f"storage: {url!r} is not a database URL ({e})") from None
-    if path is not None:
-        if path.exists() and not path.is_file():
-            raise StorageError(f"storage: {path} exists and is not a file")
-        parent = path.parent.absolute()
-        while not parent.exists():
-            parent = parent.parent
-        if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-            raise StorageError(f"storage: cannot create {path}: {parent} is not writable")
-        return
-    resolved = resolve_url(url)
-    # a host that drops packets must not hang the launch
-    connect_args = {"connect_timeout": 10} if resolved.startswith("postgresql") else {}
-    try:
-        engine = create_engine(resolved, connect_args=connect_args)
-    except (ArgumentError, NoSuchModuleError, ImportError) as e:
-        raise StorageError(f"storage: cannot use {redact(url)}: {e}") from None
-    try:
-        with engine.connect() as connection:
-            connection.execute(text("SELECT 1"))
-    except Exception as e:
-        raise database_error("cannot connect to", url, e) from None
-    finally:
-        engine.dispose()
-
-
-def open_storage(
-    url: str, create: bool = True, *, read_only: bool = False
-) -> optuna.storages.RDBStorage:
-    """An Optuna RDB storage for ``url``.
-
-    ``create``: create the tables (and the SQLite file) if needed, as the driver does;
-    readers pass False. Optuna's first open also inserts version rows, so a reader
-    opening a database while it is being created can collide with the driver: the driver
-    retries, a reader gets the SQLAlchemy error. ``read_only``: every connection is
-    read-only (``read_only_engine_kwargs``), so nothing can be written, and a finished
-    SQLite study on read-only media can be read.
-    """
-    import optuna
-    from sqlalchemy.exc import SQLAlchemyError
-
-    resolved = resolve_url(url)
-    path = sqlite_path(resolved)
-    if read_only:
-        create = False
-        engine_kwargs = read_only_engine_kwargs(resolved)
-    elif path is not None:
-        if create:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            # WAL is a property of the database file: once set, every later connection (the
-            # dashboard's too) reads without blocking the writer and is never blocked by it.
-            with sqlite3.connect(path, timeout=SQLITE_TIMEOUT) as connection:
-                connection.execute("PRAGMA journal_mode=WAL")
-            connection.close()
-        engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT}}
-    else:
-        engine_kwargs = {"pool_pre_ping": True}
-
-    def build() -> optuna.storages.RDBStorage:
-        return optuna.storages.RDBStorage(
-            resolved, engine_kwargs=engine_kwargs, skip_table_creation=not create
-        )
-
-    for _ in range(4 if create else 0):
-        try:
-            return build()
-        except (SQLAlchemyError, optuna.exceptions.StorageInternalError):
-            time.sleep(0.5)
-    return build()
-
-
-def check_writable(url: str) -> None:
-    """Raise a StorageError naming the file and the fix unless the driver can write an
-    existing SQLite database (``check_storage`` checks its folder): SQLite opens a file it
-    cannot write read-only, and the first write would fail after Ray and the workers
-    started. Opening the file for writing changes nothing in it."""
-    path = sqlite_path(resolve_url(url))
-    if path is None:
-        return
-    for file in (path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")):
-        if not file.is_file():
-            continue
-        try:
-            with file.open("r+b"):
-                pass
-        except OSError as e:
-            raise StorageError(
-                f"storage: cannot write the database file {file} ({e.strerror}): make it "
-                "writable (chmod u+w, chattr -i, a read-write mount) or give another --storage"
-            ) from None
-
-
-def read_only_engine_kwargs(url: str) -> dict[str, Any]:
-    """``create_engine`` arguments for a reader that the database itself keeps from
-    writing: SQLite opened with ``mode=ro`` (``connect_read_only``), a PostgreSQL session
-    whose transactions are read-only."""
-    from sqlalchemy.engine import make_url
-
-    resolved = resolve_url(url)
-    path = sqlite_path(resolved)
-    if path is not None:
-        return {"creator": functools.partial(connect_read_only, path)}
-    options = make_url(resolved).query.get("options", "")
-    if not isinstance(options, str):  # given twice in the URL
-        options = " ".join(options)
-    options = f"{options} -c default_transaction_read_only=on".strip()
-    return {"pool_pre_ping": True, "connect_args": {"options": options}}
-
-
-def connect_read_only(path: Path) -> sqlite3.Connection:
-    """A read-only connection to the SQLite file ``path`` (SQLite refuses every write).
-
-    A database in WAL mode needs its ``-shm`` file to be read; a live driver always has
-    one. When it is absent and cannot be created (read-only media, so no driver can write
-    there either), the file is opened ``immutable``: read without locks.
-    """
-    uri = f"{path.absolute().as_uri()}?mode=ro"
-    connection = sqlite3.connect(uri, uri=True, timeout=SQLITE_TIMEOUT, check_same_thread=False)
-    try:
-        connection.execute("SELECT count(*) FROM sqlite_master").fetchone()
-    except sqlite3.OperationalError as e:
-        connection.close()
-        if "unable to open" not in str(e):
-            raise
-        connection = sqlite3.connect(
-            f"{uri}&immutable=1", uri=True, timeout=SQLITE_TIMEOUT, check_same_thread=False
-        )
-    return connection
-
-
-def code_revision() -> str:
-    """The git commit of this checkout (``-dirty`` if tracked files changed), or "unknown"."""
-    root = Path(__file__).resolve().parent.parent
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10
-        )
-        if commit.returncode != 0:
-            return "unknown"
-        dirty = subprocess.run(
-            ["git", "diff", "--quiet", "HEAD"], cwd=root, capture_output=True, timeout=10
-        )
-    except (OSError, subprocess.TimeoutExpired):
-        return "unknown"
-    return commit.stdout.strip() + ("-dirty" if dirty.returncode == 1 else "")
-
-
-def package_versions() -> dict[str, str]:
-    """Installed versions of the packages a result depends on."""
-    versions = {}
-    for name in VERSIONED_PACKAGES:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = "not installed"
-    return versions
 
 
 def json_safe(values: Iterable[float]) -> list[float | None]:
     """Floats with NaN/inf as None: user attrs are JSON, and the dashboard's parser rejects NaN."""
     return [float(v) if math.isfinite(v) else None for v in values]
-
-
-@dataclass(frozen=True)
-class Counts:
-    """One method's line of the ledger; every planned key is in exactly one of
-    done / running / failed / left."""
-
-    planned: int = 0
-    done: int = 0  # COMPLETE (diverged ones included)
-    diverged: int = 0
-    running: int = 0
-    failed: int = 0  # FAIL after the retry limit or an exception; relaunch re-runs it
-    left: int = 0  # not started, waiting, or interrupted (relaunch resumes it)
-
-
-def current_numbers(trials: Iterable[tuple[str | None, int]]) -> dict[str, int]:
-    """Key -> the number of the key's current trial, from ``(key, number)`` pairs: the
-    highest-numbered trial of a key is its current one (a re-run gets a fresh trial)."""
-    current: dict[str, int] = {}
-    for key, number in trials:
-        if key is not None and number > current.get(key, -1):
-            current[key] = number
-    return current
-
-
-def current_trials(trials: Iterable[FrozenTrial]) -> dict[str, FrozenTrial]:
-    """Key -> the key's current trial (``current_numbers``)."""
-    trials = list(trials)
-    numbers = current_numbers((t.user_attrs.get("key"), t.number) for t in trials)
-    by_number = {t.number: t for t in trials}
-    return {key: by_number[number] for key, number in numbers.items()}
-
-
-class KeyStatus(StrEnum):
-    """The ledger column of a plan key (``Counts`` has one field per member)."""
-
-    DONE = "done"
-    RUNNING = "running"
-    FAILED = "failed"
-    LEFT = "left"
-
-
-def key_status(state: str | None, outcome: Any, driver_alive: bool) -> KeyStatus:
-    """The ledger column of a plan key: done, running, failed or left, from its
-    current trial's state name and ``outcome`` attr (``state=None``: no trial yet).
-
-    A RUNNING trial counts as running only while a driver is alive; otherwise its driver
-    died and the key is left for the next launch, like an interrupted one.
-    """
-    if state is None or state == "WAITING":
-        return KeyStatus.LEFT
-    if state == "COMPLETE":
-        return KeyStatus.DONE
-    if state == "RUNNING":
-        return KeyStatus.RUNNING if driver_alive else KeyStatus.LEFT
-    return KeyStatus.LEFT if outcome == Outcome.INTERRUPTED else KeyStatus.FAILED
-
-
-def tally(
-    keys: Iterable[str], current: Mapping[str, tuple[str | None, Any]], driver_alive: bool
-) -> Counts:
-    """The ledger line of ``keys``: ``current`` maps a key to its current trial's state name
-    and ``outcome`` attr (a key without a trial is missing)."""
-    line = dict.fromkeys(Counts.__dataclass_fields__, 0)
-    for key in keys:
-        state, outcome = current.get(key, (None, None))
-        status = key_status(state, outcome, driver_alive)
-        line["planned"] += 1
-        line[status] += 1
-        line["diverged"] += status == KeyStatus.DONE and outcome == Outcome.DIVERGED
-    return Counts(**line)
-
-
-def ledger(
-    plan_keys: Sequence[str], trials: Iterable[FrozenTrial], driver_alive: bool
-) -> dict[str, Counts]:
-    """Per-method counts of the planned keys (method = the key's first part, after the
-    ``confirm/`` of a confirmation key)."""
-    current = {
-        key: (trial.state.name, trial.user_attrs.get("outcome"))
-        for key, trial in current_trials(trials).items()
-    }
-    by_method: dict[str, list[str]] = {}
-    for key in plan_keys:
-        by_method.setdefault(key.removeprefix("confirm/").split("/")[0], []).append(key)
-    return {method: tally(keys, current, driver_alive) for method, keys in by_method.items()}
 
 
 #: the name optuna-dashboard shows for the study's objective (not "Objective 0")
@@ -485,16 +96,6 @@ def retried(method: _Method) -> _Method:
     return again  # type: ignore[return-value]
 
 
-def plan_mismatch(name: str, stored: str, given: str) -> StorageError:
-    """The error for a study launched with another plan: two plans in one study would mix
-    two budgets."""
-    return StorageError(
-        f"study {name!r} in this storage was launched with another plan "
-        f"(plan_hash {stored[:12]}, this spec gives {given[:12]}): the spec's methods, "
-        "budget, seeds or search space changed. Use a new study name, or restore the old spec."
-    )
-
-
 class StudyStore:
     """The driver's handle on one study: every write the sweep makes goes through here.
 
@@ -504,7 +105,10 @@ class StudyStore:
     """
 
     def __init__(
-        self, storage: optuna.storages.RDBStorage, study_id: int, grace: float = STORAGE_GRACE
+        self,
+        storage: optuna.storages.RDBStorage,
+        study_id: int,
+        grace: float = STORAGE_GRACE,
     ) -> None:
         self.storage = storage
         self.study_id = study_id
@@ -514,7 +118,10 @@ class StudyStore:
 
     @classmethod
     def find(
-        cls, storage: optuna.storages.RDBStorage, name: str, grace: float = STORAGE_GRACE
+        cls,
+        storage: optuna.storages.RDBStorage,
+        name: str,
+        grace: float = STORAGE_GRACE,
     ) -> StudyStore | None:
         """The study called ``name``, or None if there is none."""
         try:
@@ -681,7 +288,10 @@ class StudyStore:
         fresh = []
         for entry in entries:
             current = latest.get(entry.key)
-            if current is None or current.state not in (TrialState.COMPLETE, TrialState.WAITING):
+            if current is None or current.state not in (
+                TrialState.COMPLETE,
+                TrialState.WAITING,
+            ):
                 attrs = {
                     "method": entry.method,
                     "config_id": entry.config_id,
@@ -716,7 +326,10 @@ class StudyStore:
 
     def interrupt(self, trial_id: int, why: str, successor: int | None) -> None:
         """FAIL a RUNNING trial as ``interrupted`` (its key is re-run, from its checkpoint)."""
-        attrs: dict[str, Any] = {"outcome": Outcome.INTERRUPTED, "error": f"interrupted: {why}"}
+        attrs: dict[str, Any] = {
+            "outcome": Outcome.INTERRUPTED,
+            "error": f"interrupted: {why}",
+        }
         if successor is not None:
             attrs["superseded_by"] = successor
         self.fail(trial_id, attrs)
@@ -777,13 +390,18 @@ class StudyStore:
             count = select(func.count()).where(table.c.study_id == self.study_id)
             first = connection.execute(count).scalar_one()
             rows = [
-                {"number": first + i, "study_id": self.study_id, "state": TrialState.WAITING}
+                {
+                    "number": first + i,
+                    "study_id": self.study_id,
+                    "state": TrialState.WAITING,
+                }
                 for i in range(len(trials))
             ]
             returning = table.c.trial_id
             ids = (
                 connection.execute(
-                    insert(table).returning(returning, sort_by_parameter_order=True), rows
+                    insert(table).returning(returning, sort_by_parameter_order=True),
+                    rows,
                 )
                 .scalars()
                 .all()
@@ -794,7 +412,10 @@ class StudyStore:
                     key = tuple(choices[name])
                     if key not in distributions:
                         distribution = CategoricalDistribution(key)
-                        distributions[key] = (distribution, distribution_to_json(distribution))
+                        distributions[key] = (
+                            distribution,
+                            distribution_to_json(distribution),
+                        )
                     distribution, text = distributions[key]
                     params.append({
                         "trial_id": trial_id,

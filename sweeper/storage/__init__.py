@@ -1,0 +1,113 @@
+"""The study database: one Optuna study per spec, written only by the sweep driver.
+
+Conventions: docs/architecture.md, "Storage conventions". One file per job:
+
+- ``urls``: database URLs, their checks, and the one place that says how a URL is
+  connected to, for the writer and readers alike (SQLite in WAL mode with a long busy
+  timeout; readers' connections read-only);
+- ``errors``: ``StorageError``, ``StudyBusy``, which database errors are outages, and the
+  one-line message of each;
+- ``provenance``: the code's revision and the package versions a study records;
+- ``ledger``: the ledger rules, pure functions over (key, state, outcome): a key's current
+  trial, its ledger column, the per-method counts;
+- ``writer``: ``StudyStore`` (the driver's claim, heartbeats, sync and trial writes, each
+  retried through an outage), ``Heartbeat``, and whether a driver record is alive.
+
+Opening a study (for the driver or a reader) is ``sweeper.study.open_study``. The names
+are re-exported here; a module constant (``DRIVER_STALE_SECONDS``, ``SQLITE_TIMEOUT``...)
+is read in its own module, so a test that changes one sets it there.
+"""
+
+from sweeper.storage.errors import (
+    StorageError,
+    StudyBusy,
+    database_cause,
+    database_error,
+    is_database_error,
+    is_outage,
+    plan_mismatch,
+    reason_of,
+    redact,
+    write_error,
+)
+from sweeper.storage.ledger import (
+    Counts,
+    KeyStatus,
+    current_numbers,
+    current_trials,
+    key_status,
+    ledger,
+    tally,
+)
+from sweeper.storage.provenance import (
+    VERSIONED_PACKAGES,
+    code_revision,
+    package_versions,
+)
+from sweeper.storage.urls import (
+    SQLITE_TIMEOUT,
+    check_storage,
+    check_writable,
+    connect_read_only,
+    open_storage,
+    read_only_engine_kwargs,
+    resolve_url,
+    sqlite_path,
+)
+from sweeper.storage.writer import (
+    DRIVER_STALE_SECONDS,
+    OBJECTIVE_NAME,
+    RETRY_MAX_DELAY,
+    STORAGE_GRACE,
+    Heartbeat,
+    StudyStore,
+    busy_message,
+    driver_alive,
+    json_safe,
+    name_objective,
+    process_start,
+    retried,
+)
+
+__all__ = [
+    "DRIVER_STALE_SECONDS",
+    "OBJECTIVE_NAME",
+    "RETRY_MAX_DELAY",
+    "SQLITE_TIMEOUT",
+    "STORAGE_GRACE",
+    "VERSIONED_PACKAGES",
+    "Counts",
+    "Heartbeat",
+    "KeyStatus",
+    "StorageError",
+    "StudyBusy",
+    "StudyStore",
+    "busy_message",
+    "check_storage",
+    "check_writable",
+    "code_revision",
+    "connect_read_only",
+    "current_numbers",
+    "current_trials",
+    "database_cause",
+    "database_error",
+    "driver_alive",
+    "is_database_error",
+    "is_outage",
+    "json_safe",
+    "key_status",
+    "ledger",
+    "name_objective",
+    "open_storage",
+    "package_versions",
+    "plan_mismatch",
+    "process_start",
+    "read_only_engine_kwargs",
+    "reason_of",
+    "redact",
+    "resolve_url",
+    "retried",
+    "sqlite_path",
+    "tally",
+    "write_error",
+]
