@@ -70,6 +70,7 @@ from sweeper.storage import (
     check_writable,
     code_revision,
     json_safe,
+    ledger,
     package_versions,
     redact,
 )
@@ -173,6 +174,14 @@ def launch(
         except StorageError as e:
             print(f"sweeper launch: {e}", file=stream)
             return 2
+        if stage is None and all_done(spec, plan):  # a relaunch with nothing left: no Ray
+            total = len(plan.entries)
+            print(
+                f"study {spec.study!r} in {redact(spec.storage_url)}: {total} of {total} "
+                "trials done, 0 to run",
+                file=stream,
+            )
+            return 0
         cpus = math.ceil(execution.max_concurrent * execution.cpus_per_trial)
         try:
             started_ray = start_ray(execution.address, num_cpus=cpus)
@@ -187,6 +196,22 @@ def launch(
         finally:
             if started_ray:
                 ray.shutdown()
+
+
+def all_done(spec: StudySpec, plan: Plan) -> bool:
+    """Whether the study already holds every key of ``plan`` done (and its random agent
+    measured, if the spec asks for it), read read-only. Anything else, a study that does
+    not exist or cannot be read included, is False: the launch then runs and reports it."""
+    try:
+        with open_study(
+            spec.storage_url, spec.study, write=False, plan_hash=plan.hash, grace=0
+        ) as store:
+            trials, attrs = store.trials(), store.attrs
+    except StorageError:  # NoStudy, another plan, an unreachable database
+        return False
+    if spec.random_episodes and random_agent.ATTR not in attrs:
+        return False
+    return all(c.done == c.planned for c in ledger(plan.keys(), trials, False).values())
 
 
 def _launch_on_ray(

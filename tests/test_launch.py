@@ -18,7 +18,7 @@ from optuna.trial import TrialState
 
 from agent.config import TrialResult
 from agent.metrics import normalized_auc
-from sweeper import cli
+from sweeper import cli, driver
 from sweeper.driver import launch, prepare
 from sweeper.storage import StudyStore, open_storage
 
@@ -85,6 +85,11 @@ def test_launch_ci_end_to_end_then_status_and_resume(tmp_path, monkeypatch, caps
     assert "driver: not running" in out
 
     before = [(t.number, t.datetime_complete) for t in study.get_trials()]
+
+    def no_ray(*args, **kwargs):
+        raise AssertionError("Ray was started")
+
+    monkeypatch.setattr(driver, "start_ray", no_ray)  # nothing left: no Ray (issue 22)
     assert cli.main(["launch", str(CI_SPEC)]) == 0  # nothing left: nothing re-run
     assert "2 of 2 trials done, 0 to run" in capsys.readouterr().err
     assert [(t.number, t.datetime_complete) for t in load(url).get_trials()] == before
