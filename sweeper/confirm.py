@@ -32,7 +32,8 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     drive the stage."""
     # the stage loads the driver, Ray and Optuna: only when the command runs
     from sweeper.confirmation import check_study, confirm, settings
-    from sweeper.driver import EXIT_INTERRUPTED, prepare, sigterm_stops
+    from sweeper.driver import EXIT_INTERRUPTED
+    from sweeper.launcher import prepare, sigterm_stops
 
     with sigterm_stops():
         try:

@@ -6,7 +6,7 @@ overstates it. This stage re-runs each method's ``K`` best configurations (by se
 the mean over the config's search seeds, ties to the lower config id) on ``N`` fresh seeds
 (``sweeper.plan.fresh_seeds``: after the search's largest), in the same study, as plan keys
 ``confirm/{method}/{config_id}/{seed}`` (trial attr ``stage: "confirm"``). It runs through
-the search's own driver (``sweeper.driver.launch`` with a ``stage``), so its ledger, resume
+the search's own driver (``sweeper.launcher.launch`` with a ``stage``), so its ledger, resume
 and failure semantics are the search's: one current trial per key, worker deaths re-run from
 the checkpoint in the same trial, a killed driver's trials re-run by the next ``sweeper
 confirm``, which resumes the stage.
@@ -26,7 +26,7 @@ from typing import Any
 
 from optuna.trial import FrozenTrial, TrialState
 
-from sweeper.driver import launch
+from sweeper.launcher import launch
 from sweeper.plan import Plan, build_plan, confirm_plan, fresh_seeds
 from sweeper.spec import SpecError, StudySpec
 from sweeper.storage import (
@@ -119,7 +119,7 @@ def choice(
 
 
 def confirm_stage(spec: StudySpec, store: StudyStore, *, top_k: int, seeds: int) -> Plan:
-    """The stage's plan, run by the study's driver (``sweeper.driver.Stage``): the choice
+    """The stage's plan, run by the study's driver (``sweeper.launcher.Stage``): the choice
     is made (and stored) under the driver's claim, so two drivers never choose twice."""
     search = build_plan(spec, study_uid=store.study_uid)
     stored = store.attrs.get(ATTR)

@@ -1,4 +1,4 @@
-"""``sweeper launch SPEC``: run a study, or resume it, on Ray (``sweeper.driver``).
+"""``sweeper launch SPEC``: run a study, or resume it, on Ray (``sweeper.launcher``).
 
 Exit codes: 0 all done, 1 some trials failed, 2 bad input (nothing written), 3 another
 driver runs the study (busy), 130 interrupted (Ctrl-C or SIGTERM).
@@ -30,7 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(spec: StudySpec, args: argparse.Namespace) -> int:
     """``sweeper launch``: returns the exit code."""
     # the driver loads Ray and Optuna: only when the command runs (`--help` stays light)
-    from sweeper.driver import EXIT_INTERRUPTED, launch, prepare, sigterm_stops
+    from sweeper.driver import EXIT_INTERRUPTED
+    from sweeper.launcher import launch, prepare, sigterm_stops
 
     with sigterm_stops():
         try:

@@ -1,18 +1,19 @@
 """The random agent's success rate on a study's env: the 0 of its normalised scores.
 
 The driver measures it once per study, before the first trial, and stores it as the study
-user attr ``random_agent``; a relaunch finds it there and does not measure again
-(``sweeper.aggregate.normalize`` reads it).
+user attr ``random_agent`` (``record_random_agent``); a relaunch finds it there and does not
+measure again (``sweeper.aggregate.normalize`` reads it).
 """
 
 from __future__ import annotations
 
 import os
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TextIO
 
 if TYPE_CHECKING:
     from sweeper.spec import StudySpec
+    from sweeper.storage import StudyStore
 
 #: the study user attr holding the measurement
 ATTR = "random_agent"
@@ -44,3 +45,26 @@ def measure_random_agent(spec: StudySpec) -> dict[str, Any]:
         "seconds": round(time.perf_counter() - start, 3),
         **rates,
     }
+
+
+def record_random_agent(spec: StudySpec, store: StudyStore, stream: TextIO) -> None:
+    """Measure the random agent's success rate once per study (the 0 of its normalised
+    scores) and store it in the study; a study that has it is not measured again. A
+    measurement that fails is a note, not a failure: the study is then not normalised."""
+    if not spec.random_episodes or ATTR in store.attrs:
+        return
+    print(
+        f"measuring a random agent's success rate on {spec.env.name} "
+        f"({spec.random_episodes} episodes)",
+        file=stream,
+    )
+    try:
+        measured = measure_random_agent(spec)
+    except Exception as e:  # e.g. no renderer on the driver's host
+        print(f"sweeper launch: note: could not measure the random agent: {e}", file=stream)
+        return
+    store.set_study_attr(ATTR, measured)
+    print(
+        f"random agent: success rate {measured['success_rate']:.3f} in {measured['seconds']:.1f} s",
+        file=stream,
+    )

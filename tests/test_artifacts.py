@@ -25,7 +25,7 @@ from agent import video
 from agent.config import TrialResult
 from agent.metrics import normalized_auc
 from sweeper.artifacts import ArtifactStore, artifact_location, upload_once
-from sweeper.driver import launch, prepare
+from sweeper.launcher import launch, prepare
 from sweeper.spec import SpecError, load_spec, parse_spec
 from sweeper.storage import open_storage
 

@@ -19,7 +19,7 @@ from agent.metrics import normalized_auc
 from sweeper import cli
 from sweeper.aggregate import aggregate
 from sweeper.confirmation import confirm
-from sweeper.driver import launch, prepare
+from sweeper.launcher import launch, prepare
 from sweeper.plan import build_plan, confirm_plan, fresh_seeds
 from sweeper.storage import open_storage
 

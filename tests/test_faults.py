@@ -25,7 +25,7 @@ from optuna.trial import TrialState
 
 from agent import train
 from agent.config import TrialResult
-from sweeper.driver import launch, prepare
+from sweeper.launcher import launch, prepare
 from sweeper.storage import open_storage
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -207,7 +207,7 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, loca
 RACER = """
 import sys, time
 from agent.config import TrialResult
-from sweeper.driver import launch, prepare
+from sweeper.launcher import launch, prepare
 from sweeper.storage import StudyStore
 
 spec_path, release = sys.argv[1], float(sys.argv[2])
@@ -342,7 +342,7 @@ import sys, time, zlib
 from pathlib import Path
 from agent.config import TrialResult
 from sweeper.confirmation import confirm
-from sweeper.driver import launch, prepare
+from sweeper.launcher import launch, prepare
 
 spec_path, address, stage = sys.argv[1], sys.argv[2], sys.argv[3]
 

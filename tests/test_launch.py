@@ -18,8 +18,8 @@ from optuna.trial import TrialState
 
 from agent.config import TrialResult
 from agent.metrics import normalized_auc
-from sweeper import cli, driver
-from sweeper.driver import launch, prepare
+from sweeper import cli, launcher
+from sweeper.launcher import launch, prepare
 from sweeper.storage import StudyStore, open_storage
 
 GRID = [0, 100, 200, 300]  # studies/ci.yaml: env_steps 300, eval_every 100
@@ -89,7 +89,7 @@ def test_launch_ci_end_to_end_then_status_and_resume(tmp_path, monkeypatch, caps
     def no_ray(*args, **kwargs):
         raise AssertionError("Ray was started")
 
-    monkeypatch.setattr(driver, "start_ray", no_ray)  # nothing left: no Ray (issue 22)
+    monkeypatch.setattr(launcher, "start_ray", no_ray)  # nothing left: no Ray (issue 22)
     assert cli.main(["launch", str(CI_SPEC)]) == 0  # nothing left: nothing re-run
     assert "2 of 2 trials done, 0 to run" in capsys.readouterr().err
     assert [(t.number, t.datetime_complete) for t in load(url).get_trials()] == before
@@ -445,7 +445,7 @@ def test_a_local_ray_listens_on_the_loopback_only_without_metrics():
 
 
 def test_a_refused_connection_names_token_authentication(monkeypatch):
-    from sweeper.driver import cannot_reach_message
+    from sweeper.resources import cannot_reach_message
 
     refused = ConnectionError("Failed to connect to Ray cluster at 10.0.0.1:6379")
     monkeypatch.delenv("RAY_AUTH_MODE", raising=False)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from conftest import CI_SPEC, ROOT, wait_until
 
-from sweeper import cli, driver
+from sweeper import cli, launcher
 from sweeper.storage import open_storage
 
 LIGHT_HELP = """
@@ -62,7 +62,7 @@ def test_a_read_only_database_exits_2_before_ray_starts(tmp_path, monkeypatch, c
         def no_ray(*args, **kwargs):
             raise AssertionError("Ray was started")
 
-        monkeypatch.setattr(driver, "start_ray", no_ray)
+        monkeypatch.setattr(launcher, "start_ray", no_ray)
         before = database.read_bytes()
         assert cli.main(["launch", str(CI_SPEC), "--storage", url]) == 2
         err = capsys.readouterr().err.strip()

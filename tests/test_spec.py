@@ -80,7 +80,7 @@ def test_shipped_studies_load(name, vgg_weights):
 def test_checking_a_spec_imports_no_torch(vgg_weights):
     """The driver validates specs of every encoder without torch (start-up time, memory)."""
     code = (
-        "import sys; from sweeper.driver import prepare, study_attrs; "
+        "import sys; from sweeper.launcher import prepare, study_attrs; "
         "spec, plan = prepare(sys.argv[1]); study_attrs(spec, plan); "
         "assert 'torch' not in sys.modules, 'torch was imported'"
     )

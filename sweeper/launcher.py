@@ -1,0 +1,277 @@
+"""The launch sequence of a study: from a spec to a claimed, synced study driven on Ray.
+
+``prepare`` validates everything first (spec, env and encoder options, storage URL), and
+``launch`` checks that the database can be written and that Ray can be reached before it
+opens the study, so a bad input exits with code 2 and writes nothing. A relaunch with
+every key done (``all_done``) exits 0 without starting Ray. Otherwise it sizes the worker
+pool to the cluster (``sweeper.resources``), opens the study as its writer, claims it,
+gives every plan key that is not done a WAITING trial (``StudyStore.sync``), measures the
+random agent once per study (``sweeper.random_agent``), and hands the keys to the
+``sweeper.driver.Driver`` loop.
+
+Ctrl-C or SIGTERM, at any moment of a launch, stops the workers and marks the trials in
+flight ``interrupted``; a relaunch resumes them from their checkpoints. Exit codes: 0 all
+done, 1 some trials failed, 2 bad input, 3 another driver runs the study (busy), 130
+interrupted. What trials print goes to Ray's worker logs (``/tmp/ray/session_latest/logs``),
+not to the progress display.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import sys
+from collections.abc import Callable, Iterator
+from typing import Any, TextIO
+
+import optuna
+import ray
+
+from agent.envs import env_class
+from agent.metrics import metric_key
+from sweeper import random_agent
+from sweeper.driver import Driver
+from sweeper.execution import WorkerPool, start_ray
+from sweeper.plan import Plan, build_plan
+from sweeper.progress import LaunchProgress
+from sweeper.resources import cannot_reach_message, local_cpus, pool_size
+from sweeper.spec import StudySpec, load_spec
+from sweeper.storage import (
+    Heartbeat,
+    StorageError,
+    StudyBusy,
+    StudyStore,
+    check_storage,
+    check_writable,
+    code_revision,
+    ledger,
+    package_versions,
+    redact,
+)
+from sweeper.study import open_study
+
+#: what a driver runs once it holds the study: its plan, bound to the study
+Stage = Callable[[StudySpec, StudyStore], Plan]
+#: seconds between the driver's heartbeats in the study
+HEARTBEAT_SECONDS = 15.0
+#: exit code of a launch refused because another live driver runs the study
+EXIT_BUSY = 3
+
+
+def prepare(
+    spec: StudySpec | str | os.PathLike[str],
+    storage: str | None = None,
+    address: str | None = None,
+    max_concurrent: int | None = None,
+) -> tuple[StudySpec, Plan]:
+    """Validate the spec (or the spec file) with its overrides, build its plan and check
+    the storage.
+
+    Raises ``SpecError`` or ``StorageError`` (both ValueErrors naming the field); writes
+    nothing anywhere.
+    """
+    if not isinstance(spec, StudySpec):
+        spec = load_spec(spec)
+    if (storage, address, max_concurrent) != (None, None, None):
+        spec = spec.with_overrides(storage=storage, address=address, max_concurrent=max_concurrent)
+    plan = build_plan(spec)
+    check_storage(spec.storage_url)
+    return spec, plan
+
+
+def study_attrs(spec: StudySpec, plan: Plan) -> dict[str, Any]:
+    """The study user attrs (docs/architecture.md, "Storage conventions")."""
+    return {
+        "spec": spec.model_dump(mode="json"),
+        "plan_hash": plan.hash,
+        "plan": plan.keys(),
+        "versions": package_versions(),
+        "revision": code_revision(),
+        "env": spec.env.name,
+        "metric_names": list(report_metric_names(spec.env.name)),
+    }
+
+
+def report_metric_names(env: str) -> tuple[str, ...]:
+    """The metric keys a trial on ``env`` reports (docs/architecture.md, "One trial")."""
+    return tuple(metric_key(name) for name in env_class(env).metric_names)
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGTERM, handled like Ctrl-C."""
+
+
+def _raise_interrupted(signum: int, frame: Any) -> None:
+    raise Interrupted()
+
+
+@contextlib.contextmanager
+def sigterm_stops() -> Iterator[None]:
+    """Inside the block SIGTERM raises ``Interrupted`` (a KeyboardInterrupt), so it stops a
+    launch as Ctrl-C does; the handler before it comes back after. Outside the main
+    thread, which alone receives signals, it changes nothing."""
+    try:
+        previous = signal.signal(signal.SIGTERM, _raise_interrupted)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def launch(
+    spec: StudySpec,
+    plan: Plan,
+    *,
+    train: Callable[..., Any] | None = None,
+    stream: TextIO | None = None,
+    stage: Stage | None = None,
+) -> int:
+    """Run (or resume) the study of a validated ``spec``; return the exit code.
+
+    The database must be writable and Ray reachable before anything is written. A Ray that
+    is already initialised is used and left running; otherwise one is started (local, or
+    ``execution.address``) and shut down at the end. ``train`` replaces ``agent.train`` in
+    the workers (tests). ``stage`` gives the plan to run once the study is claimed
+    (default: the search plan; ``sweeper.confirm``: the confirmation stage); a StorageError
+    from it exits 2. SIGTERM raises ``Interrupted`` throughout.
+    """
+    stream = sys.stderr if stream is None else stream
+    execution = spec.execution
+    with sigterm_stops():
+        try:
+            check_writable(spec.storage_url)
+        except StorageError as e:
+            print(f"sweeper launch: {e}", file=stream)
+            return 2
+        if stage is None and all_done(spec, plan):  # a relaunch with nothing left: no Ray
+            total = len(plan.entries)
+            print(
+                f"study {spec.study!r} in {redact(spec.storage_url)}: {total} of {total} "
+                "trials done, 0 to run",
+                file=stream,
+            )
+            return 0
+        try:
+            started_ray = start_ray(execution.address, num_cpus=local_cpus(execution))
+        except SystemExit:  # Ray's own SIGTERM handlers, set while it starts, exit this way
+            ray.shutdown()
+            raise Interrupted() from None
+        except Exception as e:  # ConnectionError, an auth error, ...
+            print(cannot_reach_message(execution.address, e), file=stream)
+            return 2
+        try:
+            return _launch_on_ray(spec, plan, train, stream, stage)
+        finally:
+            if started_ray:
+                ray.shutdown()
+
+
+def all_done(spec: StudySpec, plan: Plan) -> bool:
+    """Whether the study already holds every key of ``plan`` done (and its random agent
+    measured, if the spec asks for it), read read-only. Anything else, a study that does
+    not exist or cannot be read included, is False: the launch then runs and reports it."""
+    try:
+        with open_study(
+            spec.storage_url, spec.study, write=False, plan_hash=plan.hash, grace=0
+        ) as store:
+            trials, attrs = store.trials(), store.attrs
+    except StorageError:  # NoStudy, another plan, an unreachable database
+        return False
+    if spec.random_episodes and random_agent.ATTR not in attrs:
+        return False
+    return all(c.done == c.planned for c in ledger(plan.keys(), trials, False).values())
+
+
+def _launch_on_ray(
+    spec: StudySpec,
+    plan: Plan,
+    train: Callable[..., Any] | None,
+    stream: TextIO,
+    stage: Stage | None,
+) -> int:
+    """Size the worker pool to the Ray cluster, start it and run the study."""
+    execution = spec.execution
+    size = pool_size(execution, len(plan.entries), stream)
+    if size is None:
+        return 2
+    # the workers start (importing torch and the env) while the driver opens the study
+    pool = WorkerPool(
+        size,
+        cpus=execution.cpus_per_trial,
+        gpus=execution.gpus_per_trial,
+        train=train,
+        env=spec.env.name,
+        stall_timeout=execution.stall_timeout,
+    )
+    try:
+        return _run_study(spec, plan, pool, stream, stage)
+    finally:
+        pool.shutdown()
+
+
+def _run_study(
+    spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO, stage: Stage | None = None
+) -> int:
+    """Open the study as its driver, its heartbeat beating until it lets go; run it."""
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    attrs = study_attrs(spec, plan)
+    grace = spec.execution.storage_grace
+    try:
+        with open_study(
+            spec.storage_url, spec.study, write=True, attrs=attrs, grace=grace
+        ) as store:
+            try:
+                store.claim_driver()
+            except StudyBusy as e:
+                print(f"sweeper launch: {e}", file=stream)
+                return EXIT_BUSY
+            try:
+                with store.heartbeats(HEARTBEAT_SECONDS) as beat:
+                    if store.attrs.get("revision") != attrs["revision"]:
+                        print(
+                            f"sweeper launch: note: the study began at code revision "
+                            f"{store.attrs.get('revision')}; this is {attrs['revision']}",
+                            file=stream,
+                        )
+                    return _sync_and_drive(spec, store, pool, beat, stream, stage)
+            except StorageError as e:  # the stage cannot be run (sweeper confirm)
+                print(f"sweeper {'launch' if stage is None else 'confirm'}: {e}", file=stream)
+                return 2
+            except StudyBusy as e:  # a heartbeat found another driver: this one looked dead
+                print(f"sweeper launch: stopped: {e}", file=stream)
+                return EXIT_BUSY
+            finally:
+                store.release_driver()
+    except StorageError as e:  # opening or creating the study
+        print(f"sweeper launch: {e}", file=stream)
+        return 2
+
+
+def _sync_and_drive(
+    spec: StudySpec,
+    store: StudyStore,
+    pool: WorkerPool,
+    beat: Heartbeat,
+    stream: TextIO,
+    stage: Stage | None = None,
+) -> int:
+    """Give the plan's keys their trials, then run what is left."""
+    # bound to the study: its checkpoints are its own
+    plan = build_plan(spec, study_uid=store.study_uid) if stage is None else stage(spec, store)
+    todo = store.sync(plan.entries, plan.hash)
+    random_agent.record_random_agent(spec, store, stream)
+    total = len(plan.entries)
+    print(
+        f"study {spec.study!r} in {redact(spec.storage_url)}: {total - len(todo)} of {total} "
+        f"trials done, {len(todo)} to run",
+        file=stream,
+    )
+    if not todo:
+        return 0
+    pool.shrink(len(todo))
+    progress = LaunchProgress(spec.study, plan.keys(), spec.budget.env_steps, stream)
+    return Driver(spec, store, pool, progress, beat, stream).run(todo)
