@@ -194,7 +194,7 @@ def _lifecycle(url: str) -> None:
     assert successor.user_attrs["key"] == "vae/0/0"
     assert successor.user_attrs["supersedes"] == [reaped.number]
     assert successor.state == TrialState.WAITING
-    assert successor.params == {"lr": 1e-3}
+    assert successor.params == {"lr": 1e-3, "method": "vae"}  # and no constant params
     failed_successor = current_trials(trials)["pixel/1/0"]
     assert failed_successor.state == TrialState.WAITING
     assert failed_successor.user_attrs["attempts"] == 0
@@ -370,7 +370,7 @@ def test_sync_creates_5000_trials_in_seconds_on_postgresql(pg_url):
     assert len(trials) == 5000 and {t.state for t in trials} == {TrialState.WAITING}
     assert sorted(t.number for t in trials) == list(range(5000))
     last = todo[-1][1]
-    assert last.params == {"lr": 1e-3}
+    assert last.params == {"lr": 1e-3, "method": "vae"}
     assert last.user_attrs == {
         "method": "vae",
         "config_id": 249,

@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 
 from sweeper.storage import current_numbers
+from sweeper.storage.params import FIXED_PARAMS_ATTR, METHOD_PARAM, applies_to
 from sweeper.study import read_rows
 
 if TYPE_CHECKING:
@@ -62,7 +63,9 @@ def load_study_frame(storage_url: str, study_name: str) -> pd.DataFrame:
     auc = the trial's value, stage = ``"search"`` or ``"confirm"``), ``step``, one column
     per reported metric (from the ``curve`` user attr; a trial without one falls back to
     its intermediate values as ``success_rate``), then ``params_<name>`` per
-    hyperparameter. A trial with no evaluation yet has one row with ``step`` missing.
+    hyperparameter (the registered ones and the study's constants,
+    ``sweeper.storage.params``; the ``method`` param is the ``method`` column). A trial
+    with no evaluation yet has one row with ``step`` missing.
     ``study_info(frame)`` is the ``StudyInfo``.
 
     Read-only, with ``sweeper.study.read_rows`` (one query per Optuna table). Raises
@@ -95,12 +98,16 @@ def _build_frame(study_name: str, raw: StudyRows) -> pd.DataFrame:
     params_by_trial: dict[int, dict[str, Any]] = {}
     searched: dict[str, None] = {}  # params with a choice (not fixed by the spec)
     for t, name, internal, dist_json in params.itertuples(index=False):
+        if name == METHOD_PARAM:  # the trial's method: the ``method`` column already
+            continue
         if dist_json not in distributions:
             distributions[dist_json] = json_to_distribution(dist_json)
         distribution = distributions[dist_json]
         params_by_trial.setdefault(t, {})[name] = distribution.to_external_repr(internal)
         if len(getattr(distribution, "choices", (0, 1))) > 1:
             searched[name] = None
+    study = {k: json.loads(v) for k, v in study_attrs.itertuples(index=False)}
+    fixed = study.get(FIXED_PARAMS_ATTR) or {}  # constants, not registered as trial params
 
     rows, parsed, metric_names = [], [], {}
     for trial_id, number, state in trials.sort_values("number").itertuples(index=False):
@@ -108,7 +115,11 @@ def _build_frame(study_name: str, raw: StudyRows) -> pd.DataFrame:
         row = {c: attrs.get(c) for c in TRIAL_COLUMNS}
         row["stage"] = attrs.get("stage") or stage_of(attrs.get("key"))
         row.update(trial=int(number), state=str(state), auc=auc.get(trial_id))
-        row.update({f"params_{k}": v for k, v in params_by_trial.get(trial_id, {}).items()})
+        mine = params_by_trial.get(trial_id, {})
+        if attrs.get("key") is not None:  # a plan key's trial: its constants too
+            constants = {k: v for k, v in fixed.items() if applies_to(k, attrs.get("method"))}
+            mine = {**constants, **mine}
+        row.update({f"params_{k}": v for k, v in mine.items()})
         curve = attrs.get("curve")
         if not curve:
             points = sorted(fallback.get(trial_id, {}).items())
@@ -132,7 +143,6 @@ def _build_frame(study_name: str, raw: StudyRows) -> pd.DataFrame:
     if not rows:
         raise ValueError(f"study {study_name!r} has no trials yet: nothing to aggregate")
 
-    study = {k: json.loads(v) for k, v in study_attrs.itertuples(index=False)}
     order = [m for m in study.get("metric_names", []) if m in metric_names]
     metrics = order + [m for m in metric_names if m not in order]
     steps = np.concatenate([steps for steps, _ in parsed])

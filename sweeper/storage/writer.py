@@ -35,6 +35,7 @@ from sweeper.storage.errors import (
     write_error,
 )
 from sweeper.storage.ledger import current_trials
+from sweeper.storage.params import FIXED_PARAMS_ATTR, fixed_params, method_choices, registered
 
 if TYPE_CHECKING:  # optuna and sqlalchemy are imported where used: `sweeper --help` stays light
     import optuna
@@ -304,7 +305,7 @@ class StudyStore:
                 if entry.key in by_key:
                     attrs["supersedes"] = sorted(t.number for t in by_key[entry.key])
                 fresh.append((entry, attrs))
-        created = self.add_waiting_many([(e.params, e.choices, attrs) for e, attrs in fresh])
+        created = self.add_waiting_many(self._registered(entries, fresh))
         latest.update({e.key: trial for (e, _), trial in zip(fresh, created, strict=True)})
         live = (TrialState.RUNNING, TrialState.WAITING)
         todo = []
@@ -323,6 +324,26 @@ class StudyStore:
             if trial.state in live:
                 self.interrupt(trial._trial_id, "it has no plan key", None)
         return todo
+
+    def _registered(
+        self, entries: Sequence[Any], fresh: Sequence[tuple[Any, Mapping[str, Any]]]
+    ) -> list[tuple[dict[str, Any], dict[str, tuple[Any, ...]], Mapping[str, Any]]]:
+        """The ``(params, choices, user_attrs)`` the ``fresh`` entries' trials are created
+        with (``sweeper.storage.params``: the params that vary and ``method``), after the
+        constant ones are kept in the study attr ``fixed_params`` (merged with what is
+        there, so a stage with fewer methods drops none)."""
+        if not fresh:
+            return []
+        stored = self.attrs
+        fixed = fixed_params((e.params, e.choices) for e in entries)
+        known = stored.get(FIXED_PARAMS_ATTR) or {}
+        if {**known, **fixed} != known:
+            self.set_study_attr(FIXED_PARAMS_ATTR, dict(sorted({**known, **fixed}.items())))
+        planned = [key.split("/")[0] for key in stored.get("plan") or []]
+        methods = method_choices([*planned, *(e.method for e in entries)])
+        return [
+            (*registered(e.params, e.choices, e.method, methods), attrs) for e, attrs in fresh
+        ]
 
     def interrupt(self, trial_id: int, why: str, successor: int | None) -> None:
         """FAIL a RUNNING trial as ``interrupted`` (its key is re-run, from its checkpoint)."""
