@@ -1,11 +1,15 @@
-"""Study specs: YAML files validated into a frozen ``StudySpec``.
+"""Study specs: the schema of a spec, and reading a YAML file into a frozen ``StudySpec``.
 
+This module's one job is the schema: the pydantic models of a spec (``EnvSpec``,
+``SACSpace``, ``Budget``, ``Execution``, ``ConfirmSpec``, ``StudySpec``), documented field
+by field below (and in ``studies/*.yaml``), with the checks that tie fields together.
 ``load_spec(path)`` reads and validates a spec; any problem raises ``SpecError`` whose
 message names the dotted field (``sac.lr[1]``, ``methods.vae.beta``), what is allowed, and
-a close name for a typo. The schema is documented field by field below (and in
-``studies/*.yaml``).
+a close name for a typo.
 
-YAML is read by ``sweeper.spec_yaml.load_yaml`` (YAML 1.2 core scalars, no duplicate keys).
+YAML is read by ``sweeper.spec_yaml.load_yaml`` (YAML 1.2 core scalars, no duplicate keys);
+the search spaces and methods are derived from the hyperparameter declarations by
+``sweeper.spec_space``; validation errors are made and formatted by ``sweeper.spec_errors``.
 
 Numbers are then validated strictly: an integer field refuses ``2.0``, ``"2"`` and ``true``;
 a float field accepts integers.
@@ -14,39 +18,37 @@ a float field accepts integers.
 from __future__ import annotations
 
 import argparse
-import difflib
-import functools
 import inspect
 import math
 import os
 import re
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, get_origin
+from typing import Annotated, Any
 
 from pydantic import (
     AfterValidator,
-    BaseModel,
     BeforeValidator,
-    ConfigDict,
     Field,
     PlainValidator,
     Strict,
     ValidationError,
-    create_model,
     field_serializer,
     field_validator,
     model_validator,
 )
-from pydantic_core import PydanticCustomError
 
-from agent.config import TRUE_REWARD_METHODS, SACConfig
-from encoders import encoder_names, encoder_options
-from encoders.options import (
-    NoOptions,
-    default_space,
-    hyperparameters,
-    value_type,
-    with_env_fallbacks,
+from agent.config import SACConfig
+from encoders.options import hyperparameters
+from sweeper.spec_errors import format_errors, spec_error, suggest
+from sweeper.spec_space import (
+    Method,
+    StrictModel,
+    as_choices,
+    distinct,
+    method_names,
+    method_options,
+    parse_method,
+    search_space,
 )
 from sweeper.spec_yaml import SpecError, load_yaml
 
@@ -67,41 +69,11 @@ _URL_RE = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 # ---- value types ---------------------------------------------------------------------------
 
 
-def _error(message: str, at: str = "") -> PydanticCustomError:
-    """A validation error; ``at`` extends the field path pydantic reports (``vae.beta``)."""
-    return PydanticCustomError("spec", "{message}", {"message": message, "at": at})
-
-
-def _suggest(word: Any, allowed: list[str]) -> str:
-    close = difflib.get_close_matches(str(word), allowed, n=1)
-    return f"did you mean {close[0]!r}? " if close else ""
-
-
-def _as_choices(value: Any) -> Any:
-    """A scalar is a one-choice list; an empty list is an empty search space."""
-    if isinstance(value, list | tuple):
-        if not value:
-            raise _error("empty search space: give a value or a non-empty list of choices")
-        return value
-    return [value]
-
-
-def _as_size_choices(value: Any) -> Any:
-    """``[256, 256]`` is one choice of layer sizes; ``[[256, 256], [512, 512]]`` two."""
-    if isinstance(value, list | tuple) and value and all(isinstance(v, int) for v in value):
-        return [value]
-    return _as_choices(value)
-
-
-def _distinct(choices: tuple[Any, ...]) -> tuple[Any, ...]:
-    if len(set(choices)) != len(choices):
-        raise _error(f"choices must be distinct, got {list(choices)}")
-    return choices
-
-
 PosInt = Annotated[int, Strict(), Field(ge=1)]
 NonNegInt = Annotated[int, Strict(), Field(ge=0)]
 SeedInt = Annotated[int, Strict(), Field(ge=0, le=2**32 - 1)]
+#: the seeds of a study: one seed or a list of distinct ones
+SeedChoices = Annotated[tuple[SeedInt, ...], BeforeValidator(as_choices), AfterValidator(distinct)]
 PosFloat = Annotated[float, Strict(), Field(gt=0)]
 NonNegFloat = Annotated[float, Strict(), Field(ge=0)]
 
@@ -110,7 +82,7 @@ def _reward_scale(value: Any) -> str | float:
     if value == "auto":
         return value
     if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < math.inf:
-        raise _error(f"must be 'auto' or a positive number, got {value!r}")
+        raise spec_error(f"must be 'auto' or a positive number, got {value!r}")
     return float(value)
 
 
@@ -123,28 +95,8 @@ def _video_steps(value: Any) -> str | tuple[int, ...]:
     steps = value if isinstance(value, list | tuple) else [value]
     for step in steps:
         if isinstance(step, bool) or not isinstance(step, int) or step < 0:
-            raise _error(f"must be 'last', 'none' or a list of env steps >= 0, got {value!r}")
+            raise spec_error(f"must be 'last', 'none' or a list of env steps >= 0, got {value!r}")
     return tuple(sorted(set(steps)))
-
-
-class _Strict(BaseModel):
-    """Frozen, no unknown keys (reported with a close name), no NaN/inf."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
-
-    @model_validator(mode="before")
-    @classmethod
-    def _no_unknown_keys(cls, data: Any) -> Any:
-        if isinstance(data, dict):
-            allowed = list(cls.model_fields)
-            for key in data:
-                if key not in cls.model_fields:
-                    raise _error(
-                        f"unknown field; {_suggest(key, allowed)}"
-                        f"allowed: {', '.join(allowed) or 'none'}",
-                        at=str(key),
-                    )
-        return data
 
 
 def _check_env_option(value: Any, like: Any, at: str) -> None:
@@ -163,129 +115,13 @@ def _check_env_option(value: Any, like: Any, at: str) -> None:
     else:
         ok, what = isinstance(value, bool | int | float | str), "a string, number or boolean"
     if not ok:
-        raise _error(f"must be {what}, got {value!r}", at=at)
-
-
-class SearchSpace(_Strict):
-    """A search space derived by ``search_space`` from a dataclass of hyperparameters
-    (``encoders.options.hparam`` fields): each field a tuple of distinct choices."""
-
-    #: the dataclass this space was derived from
-    hyperparameters: ClassVar[type] = NoOptions
-
-    @model_validator(mode="before")
-    @classmethod
-    def _env_fallbacks(cls, data: Any) -> Any:
-        """An omitted field with an environment variable takes its value when set; the value
-        is written into the spec, so workers on other machines need not have it set."""
-        return with_env_fallbacks(cls.hyperparameters, data) if isinstance(data, dict) else data
-
-    def space(self) -> dict[str, tuple[Any, ...]]:
-        """Field name -> choices, in the dataclass's field order."""
-        return {name: getattr(self, name) for name in type(self).model_fields}
-
-
-@functools.cache
-def search_space(config: type) -> type[SearchSpace]:
-    """The search-space model of ``config``, a dataclass of ``hparam`` fields: one field per
-    hyperparameter, a value or a non-empty list of distinct choices of the field's type and
-    bounds (``encoders.options.value_type``), defaulting to its declared search choices, else
-    its default; a field with neither (nor a set environment variable) is required."""
-    defaults = default_space(config)
-    fields: dict[str, Any] = {}
-    for name, (annotation, _, info) in hyperparameters(config).items():
-        item = value_type(annotation, info)
-        convert = _as_size_choices if get_origin(annotation) is tuple else _as_choices
-        choices = Annotated[tuple[item, ...], BeforeValidator(convert), AfterValidator(_distinct)]
-        description = info.help + (f" (or set ${info.env})" if info.env else "")
-        fields[name] = (choices, Field(defaults.get(name, ...), description=description or None))
-    model = create_model(f"{config.__name__}Space", __base__=SearchSpace, **fields)
-    model.hyperparameters = config
-    return model
-
-
-def method_names() -> tuple[str, ...]:
-    """Methods a spec may name: the encoder registry's names and the true-reward controls
-    (``agent.config.TRUE_REWARD_METHODS``: the state oracle and the image control)."""
-    return (*encoder_names(), *TRUE_REWARD_METHODS)
-
-
-def method_options(name: str) -> type:
-    """The options dataclass of method ``name`` (the true-reward controls have none)."""
-    return NoOptions if name in TRUE_REWARD_METHODS else encoder_options(name)
-
-
-#: a variant's name: it becomes the first part of trial keys and of "<method>.<option>"
-#: params, so no "/" or "."; "confirm" starts the confirmation stage's keys
-_VARIANT_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,63}$")
-
-
-class Method(BaseModel):
-    """One method of a study: the ``encoder`` it runs (an encoder registry name, or a
-    true-reward control) and its full search space (``space``: option -> choices).
-
-    A method named after its encoder is the usual case (``conv: {latent_dim: 128}``); a
-    named variant gives its encoder (``conv_pytorch_init: {encoder: conv, init: pytorch}``),
-    so one study can hold several variants of one encoder.
-    """
-
-    model_config = ConfigDict(frozen=True)
-
-    encoder: str
-    space: dict[str, tuple[Any, ...]]
-
-
-def _method(name: str, options: Any) -> Method:
-    """Method ``name`` of a spec: its encoder (``options["encoder"]``, else the name) and
-    its search space, the encoder's declared defaults with the spec's ``options`` on top."""
-    if options is None:
-        options = {}
-    if not isinstance(options, dict):
-        raise _error(
-            f"must be a mapping of options (or {{}} for the defaults), got {options!r}", at=name
-        )
-    options = dict(options)
-    allowed = method_names()
-    encoder = options.pop("encoder", name)
-    if encoder != name:
-        if not isinstance(encoder, str) or encoder not in encoder_names():
-            raise _error(
-                f"a variant's encoder must be an encoder name; "
-                f"{_suggest(encoder, list(encoder_names()))}allowed: {', '.join(encoder_names())}"
-                f"; got {encoder!r}",
-                at=f"{name}.encoder",
-            )
-        if name in allowed:
-            raise _error(
-                f"{name!r} is a method of its own: name the variant of {encoder!r} otherwise "
-                f"(e.g. {encoder}_{name})",
-                at=name,
-            )
-        if not _VARIANT_RE.match(name) or name == "confirm":
-            raise _error(
-                "a variant's name must be a letter, then letters, digits, '_' or '-' (at most "
-                f"64 characters, not 'confirm'), got {name!r}",
-                at=name,
-            )
-    elif name not in allowed:
-        raise _error(
-            f"unknown method; {_suggest(name, list(allowed))}allowed: {', '.join(allowed)}, "
-            f"or a named variant of an encoder ({name}: {{encoder: conv, ...}})",
-            at=name,
-        )
-    model = search_space(method_options(encoder))
-    try:
-        space = model.model_validate(options).space()
-    except ValidationError as exc:
-        path, message = _format_errors(exc, model)[0]
-        raise _error(message, at=f"{name}.{path}") from None
-    return Method(encoder=encoder, space=space)
+        raise spec_error(f"must be {what}, got {value!r}", at=at)
 
 
 # ---- the spec -------------------------------------------------------------------------------
 
 
-class EnvSpec(_Strict):
+class EnvSpec(StrictModel):
     """The environment every trial runs in."""
 
     name: str = Field(description="an env name from agent.envs.ENV_NAMES")
@@ -300,8 +136,8 @@ class EnvSpec(_Strict):
         from agent.envs import ENV_NAMES
 
         if name not in ENV_NAMES:
-            raise _error(
-                f"unknown env {name!r}; {_suggest(name, list(ENV_NAMES))}"
+            raise spec_error(
+                f"unknown env {name!r}; {suggest(name, list(ENV_NAMES))}"
                 f"allowed: {', '.join(ENV_NAMES)}"
             )
         return name
@@ -316,11 +152,11 @@ class EnvSpec(_Strict):
         try:
             env_class = load_env_class(self.name)
         except Exception as exc:  # an env module that is missing or broken
-            raise _error(f"env {self.name!r} cannot be loaded: {exc}", at="name") from None
+            raise spec_error(f"env {self.name!r} cannot be loaded: {exc}", at="name") from None
         if self.image_size is not None:
             low, high = env_class.min_image_size, 256
             if not low <= self.image_size <= high:
-                raise _error(
+                raise spec_error(
                     f"must be in [{low}, {high}] for {self.name}, got {self.image_size}",
                     at="image_size",
                 )
@@ -333,9 +169,9 @@ class EnvSpec(_Strict):
         for key, value in self.options.items():
             if key not in accepted:
                 hint = " (set by the sweeper)" if key in reserved else ""
-                raise _error(
+                raise spec_error(
                     f"unknown option of env {self.name!r}{hint}; "
-                    f"{_suggest(key, list(accepted))}allowed: {', '.join(accepted) or 'none'}",
+                    f"{suggest(key, list(accepted))}allowed: {', '.join(accepted) or 'none'}",
                     at=f"options.{key}",
                 )
             _check_env_option(value, accepted[key], at=f"options.{key}")
@@ -348,7 +184,7 @@ class SACSpace(search_space(SACConfig)):
     @model_validator(mode="after")
     def _batch_fits_buffer(self) -> SACSpace:
         if max(self.batch_size) > min(self.buffer_capacity):
-            raise _error(
+            raise spec_error(
                 f"every batch_size must be <= every buffer_capacity, got batch_size "
                 f"{max(self.batch_size)} > buffer_capacity {min(self.buffer_capacity)}",
                 at="batch_size",
@@ -356,7 +192,7 @@ class SACSpace(search_space(SACConfig)):
         return self
 
 
-class Budget(_Strict):
+class Budget(StrictModel):
     """What one trial runs: env steps and the evaluation grid 0, eval_every, ..., env_steps."""
 
     env_steps: Annotated[int, Strict(), Field(ge=1, le=MAX_ENV_STEPS)] = Field(
@@ -370,25 +206,25 @@ class Budget(_Strict):
     def _grid(self) -> Budget:
         points = self.env_steps // self.eval_every
         if points > MAX_GRID_POINTS:
-            raise _error(
+            raise spec_error(
                 f"gives {points} evaluations per trial (env_steps / eval_every), more than "
                 f"the {MAX_GRID_POINTS} a trial's curve may hold: evaluate less often",
                 at="eval_every",
             )
         if self.env_steps % self.eval_every:
-            raise _error(
+            raise spec_error(
                 f"must divide env_steps ({self.env_steps}) so the grid ends at env_steps, "
                 f"got {self.eval_every}",
                 at="eval_every",
             )
         if self.seed_steps >= self.env_steps:
-            raise _error(
+            raise spec_error(
                 f"must be < env_steps ({self.env_steps}), got {self.seed_steps}", at="seed_steps"
             )
         return self
 
 
-class Execution(_Strict):
+class Execution(StrictModel):
     """Where and how trials run."""
 
     address: str | None = Field(None, description="a Ray address; null: a local Ray instance")
@@ -416,18 +252,18 @@ class Execution(_Strict):
     @classmethod
     def _address(cls, address: str | None) -> str | None:
         if address is not None and not address.strip():
-            raise _error("must be a Ray address such as 'auto' or 'ray://host:10001', or null")
+            raise spec_error("must be a Ray address such as 'auto' or 'ray://host:10001', or null")
         return address
 
 
-class ConfirmSpec(_Strict):
+class ConfirmSpec(StrictModel):
     """The confirmation stage (``sweeper confirm``): against the winner's curse."""
 
     top_k: PosInt = Field(description="configurations per method re-run, best search AUC first")
     seeds: PosInt = Field(description="fresh seeds (not the search's) each one runs on")
 
 
-class StudySpec(_Strict):
+class StudySpec(StrictModel):
     """A whole study: what runs (env, methods, search space, budget) and where."""
 
     study: str = Field(description="the study name: letters, digits, '_', '.', '-'")
@@ -438,9 +274,7 @@ class StudySpec(_Strict):
         "and 'state', or a variant's name with its 'encoder') to their options"
     )
     trials_per_method: PosInt = Field(description="K >= 1 SAC configurations shared by all methods")
-    seeds: Annotated[
-        tuple[SeedInt, ...], BeforeValidator(_as_choices), AfterValidator(_distinct)
-    ] = (0,)
+    seeds: SeedChoices = (0,)
     sac: SACSpace = SACSpace()
     reward_scale: RewardScale = Field(
         "auto",
@@ -477,12 +311,12 @@ class StudySpec(_Strict):
     @classmethod
     def _study_name(cls, study: str) -> str:
         if len(study) > MAX_STUDY_NAME:
-            raise _error(
+            raise spec_error(
                 f"must be at most {MAX_STUDY_NAME} characters (it names files and folders), "
                 f"got {len(study)}"
             )
         if not _NAME_RE.match(study) or study.startswith("."):
-            raise _error(
+            raise spec_error(
                 f"must be letters, digits, '_', '.', '-' (not starting with '.'), got {study!r}"
             )
         return study
@@ -491,8 +325,10 @@ class StudySpec(_Strict):
     @classmethod
     def _methods(cls, methods: dict[str, Any]) -> dict[str, Method]:
         if not methods:
-            raise _error(f"at least one method is required; allowed: {', '.join(method_names())}")
-        return {str(name): _method(str(name), options) for name, options in methods.items()}
+            raise spec_error(
+                f"at least one method is required; allowed: {', '.join(method_names())}"
+            )
+        return {str(name): parse_method(str(name), options) for name, options in methods.items()}
 
     @field_serializer("methods")
     def _methods_as_written(self, methods: dict[str, Method]) -> dict[str, dict[str, Any]]:
@@ -507,7 +343,7 @@ class StudySpec(_Strict):
     @classmethod
     def _storage_url(cls, storage: str | None) -> str | None:
         if storage is not None and not _URL_RE.match(storage):
-            raise _error(
+            raise spec_error(
                 "must be an SQLAlchemy URL such as sqlite:///runs/study.db or "
                 f"postgresql+psycopg://user@host/db, or null; got {storage!r}"
             )
@@ -517,7 +353,7 @@ class StudySpec(_Strict):
     def _plan_size(self) -> StudySpec:
         keys = len(self.methods) * self.trials_per_method_total
         if keys > MAX_PLAN_KEYS:
-            raise _error(
+            raise spec_error(
                 f"{len(self.methods)} methods x {self.trials_per_method} configurations x "
                 f"{len(self.seeds)} seeds = {keys} trials, more than the {MAX_PLAN_KEYS} a "
                 "plan may hold: split the study",
@@ -530,7 +366,7 @@ class StudySpec(_Strict):
         budget = self.budget
         for step in self.video_steps:
             if step % budget.eval_every or step > budget.env_steps:
-                raise _error(
+                raise spec_error(
                     f"{step} is not an evaluation step (a multiple of budget.eval_every="
                     f"{budget.eval_every} up to budget.env_steps={budget.env_steps})",
                     at="videos",
@@ -555,7 +391,7 @@ class StudySpec(_Strict):
                     p for p in method.space[name] if field.info.file and not Path(p).is_file()
                 ]
                 if missing:
-                    raise _error(
+                    raise spec_error(
                         f"file not found: {missing[0]!r} ({field.info.help})",
                         at=f"methods.{method_name}.{name}",
                     )
@@ -601,54 +437,6 @@ class StudySpec(_Strict):
 # ---- loading -----------------------------------------------------------------------------------
 
 
-def _describe(model: Any, loc: tuple[Any, ...]) -> str:
-    """The description of the field at ``loc`` of ``model`` (for "missing" errors), if any."""
-    info = None
-    for part in loc:
-        fields = getattr(model, "model_fields", None)
-        if not fields or part not in fields:
-            return ""
-        info = fields[part]
-        model = info.annotation
-    return info.description or "" if info else ""
-
-
-def _dotted(loc: tuple[Any, ...] | list[Any]) -> str:
-    path = ""
-    for part in loc:
-        if isinstance(part, int):
-            path += f"[{part}]"
-        elif part == "[key]":
-            path += " (key)"
-        else:
-            path += f".{part}" if path else str(part)
-    return path
-
-
-def _format_errors(exc: ValidationError, model: Any) -> list[tuple[str, str]]:
-    """(dotted path, message) of each error of validating ``model``."""
-    errors = []
-    for err in exc.errors(include_url=False):
-        loc = tuple(err["loc"])
-        ctx = err.get("ctx") or {}
-        if err["type"] == "spec":
-            path, message = _dotted(loc), ctx["message"]
-            at = ctx.get("at", "")
-            if at:
-                path = f"{path}{'' if at.startswith('[') or not path else '.'}{at}"
-        elif err["type"] == "missing":
-            path, message = _dotted(loc), "required field is missing"
-            description = _describe(model, loc)
-            if description:
-                message += f"; {description}"
-        else:
-            path, message = _dotted(loc), err["msg"]
-            if not isinstance(err.get("input"), dict):
-                message += f", got {err['input']!r}"
-        errors.append((path or "spec", message))
-    return errors
-
-
 def parse_spec(data: Any, source: str = "spec") -> StudySpec:
     """Validate an already-parsed spec (a dict); raise ``SpecError`` naming every problem."""
     if not isinstance(data, dict):
@@ -659,7 +447,7 @@ def parse_spec(data: Any, source: str = "spec") -> StudySpec:
     try:
         return StudySpec.model_validate(data)
     except ValidationError as exc:
-        errors = _format_errors(exc, StudySpec)
+        errors = format_errors(exc, StudySpec)
         detail = "; ".join(f"{path}: {message}" for path, message in errors)
         raise SpecError(f"{source}: {detail}", errors) from None
 
