@@ -115,11 +115,16 @@ class VGGEncoder(TorchEncoder):
         seed: int,
         device: str,
         options: VGGOptions,
+        *,
+        pretrained: bool = True,
     ) -> None:
+        """``pretrained=False`` keeps random weights: the same operations at the same cost,
+        for timing a trial without the weights file (``agent.calibrate``), never for one."""
         super().__init__(image_shape, seed, device, options)
         self.input_size, self.weights_path = options.input_size, options.weights_path
         self.net = vgg16_features()
-        load_features_state(Path(self.weights_path).expanduser(), self.net)
+        if pretrained:
+            load_features_state(Path(self.weights_path).expanduser(), self.net)
         self.net.to(self.torch_device)
         shape = (1, 3, 1, 1)
         self.mean = torch.tensor(IMAGENET_MEAN, device=self.torch_device).view(shape)

@@ -40,6 +40,9 @@ COMMANDS: dict[str, Command] = {
         "sweeper.confirm",
         "re-run each method's top-K configurations on fresh seeds (confirmation stage)",
     ),
+    "plan": Command(
+        "sweeper.show_plan", "the plan before it runs: trials per method and their cost here"
+    ),
     "status": Command(
         "sweeper.status", "per-method ledger of a study: done, running, failed, left"
     ),

@@ -38,7 +38,7 @@ from sweeper.execution import (
     Started,
     WorkerPool,
 )
-from sweeper.plan import PlanEntry
+from sweeper.plan import PlanEntry, run_order
 from sweeper.progress import LaunchProgress
 from sweeper.spec import StudySpec
 from sweeper.storage import Heartbeat, KeyStatus, StudyStore, json_safe
@@ -71,11 +71,6 @@ class Job:
         for name in names:
             columns[name] = json_safe(self.points[s].get(name, float("nan")) for s in steps)
         return columns
-
-
-def run_order(entry: PlanEntry) -> tuple[int, int, str]:
-    """Where a key starts in a launch: by configuration, then seed, then method."""
-    return (entry.config_id, entry.seed, entry.method)
 
 
 class Driver:

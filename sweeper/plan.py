@@ -60,6 +60,12 @@ def trial_key(method: str, config_id: int, seed: int) -> str:
     return f"{method}/{config_id}/{seed}"
 
 
+def run_order(entry: PlanEntry) -> tuple[int, int, str]:
+    """The order a driver starts trials in: config by config, seed by seed, every method
+    of a round together (so a study stopped early is still paired)."""
+    return entry.config_id, entry.seed, entry.method
+
+
 def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
     """Sample the plan of ``spec``; the same spec always gives the same plan and hash.
 
