@@ -3,7 +3,7 @@
 
 ``open_study`` is a context manager: it opens the storage, finds (or, for the driver,
 creates) the study, checks its plan hash, and disposes of the engine on exit. A reader's
-connections are read-only (``sweeper.storage.urls.read_only_engine_kwargs``): it never
+connections are read-only (``sweeper.storage.urls.open_engine``): it never
 writes, and reads a finished SQLite study on read-only media. ``read_rows`` is the fast
 reader of a whole study: one SQL query per Optuna table, not one per trial. The study's
 rules (the current trial of a key, the per-key ledger) are ``sweeper.storage.ledger``'s
@@ -22,8 +22,8 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from sweeper.storage.errors import StorageError, database_error, plan_mismatch, redact
-from sweeper.storage.urls import open_storage, read_only_engine_kwargs, resolve_url, sqlite_path
+from sweeper.storage.errors import StorageError, check_plan, database_error, redact
+from sweeper.storage.urls import open_engine, open_storage, resolve_url, sqlite_path
 from sweeper.storage.writer import STORAGE_GRACE, StudyStore
 
 if TYPE_CHECKING:  # pandas and sqlalchemy are imported where used: `sweeper --help` stays light
@@ -90,14 +90,6 @@ def open_study(
         storage.engine.dispose()
 
 
-def check_plan(name: str, attrs: Mapping[str, Any], plan_hash: str) -> None:
-    """Raise StorageError unless study ``name`` (its user ``attrs``) was launched with the
-    plan ``plan_hash``; a study without a plan hash passes."""
-    stored = attrs.get("plan_hash")
-    if stored is not None and stored != plan_hash:
-        raise plan_mismatch(name, stored, plan_hash)
-
-
 @dataclass(frozen=True)
 class StudyRows:
     """A whole study as Optuna stores it, one frame per table (``read_rows``)."""
@@ -159,13 +151,13 @@ def read_rows(url: str, name: str) -> StudyRows:
 @contextlib.contextmanager
 def _reader(url: str) -> Iterator[Connection]:
     """A read-only connection to ``url``'s database, which must hold Optuna's tables."""
-    from sqlalchemy import create_engine, inspect
+    from sqlalchemy import inspect
     from sqlalchemy.exc import ArgumentError, SQLAlchemyError
 
     resolved = resolve_url(url)
     try:
         path = sqlite_path(resolved)
-        engine = create_engine(resolved, **read_only_engine_kwargs(resolved))
+        engine = open_engine(resolved, read_only=True)
     except (ArgumentError, ImportError) as e:
         raise StorageError(f"storage: cannot use {redact(url)}: {e}") from None
     if path is not None and not path.is_file():

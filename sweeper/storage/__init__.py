@@ -3,8 +3,8 @@
 Conventions: docs/architecture.md, "Storage conventions". One file per job:
 
 - ``urls``: database URLs, their checks, and the one place that says how a URL is
-  connected to, for the writer and readers alike (SQLite in WAL mode with a long busy
-  timeout; readers' connections read-only);
+  connected to, for the writer and readers alike (``engine_arguments``, ``open_engine``:
+  SQLite in WAL mode with a long busy timeout; readers' connections read-only);
 - ``errors``: ``StorageError``, ``StudyBusy``, which database errors are outages, and the
   one-line message of each;
 - ``provenance``: the code's revision and the package versions a study records;
@@ -21,11 +21,11 @@ is read in its own module, so a test that changes one sets it there.
 from sweeper.storage.errors import (
     StorageError,
     StudyBusy,
+    check_plan,
     database_cause,
     database_error,
     is_database_error,
     is_outage,
-    plan_mismatch,
     reason_of,
     redact,
     write_error,
@@ -49,6 +49,8 @@ from sweeper.storage.urls import (
     check_storage,
     check_writable,
     connect_read_only,
+    engine_arguments,
+    open_engine,
     open_storage,
     read_only_engine_kwargs,
     resolve_url,
@@ -83,6 +85,7 @@ __all__ = [
     "StudyBusy",
     "StudyStore",
     "busy_message",
+    "check_plan",
     "check_storage",
     "check_writable",
     "code_revision",
@@ -92,15 +95,16 @@ __all__ = [
     "database_cause",
     "database_error",
     "driver_alive",
+    "engine_arguments",
     "is_database_error",
     "is_outage",
     "json_safe",
     "key_status",
     "ledger",
     "name_objective",
+    "open_engine",
     "open_storage",
     "package_versions",
-    "plan_mismatch",
     "process_start",
     "read_only_engine_kwargs",
     "reason_of",

@@ -11,6 +11,8 @@ the same errors.
 from __future__ import annotations
 
 import sqlite3
+from collections.abc import Mapping
+from typing import Any
 
 
 class StorageError(ValueError):
@@ -108,11 +110,16 @@ def write_error(url: str, error: BaseException, grace: float) -> StorageError:
     return StorageError(f"storage: cannot use {where}: {reason}")
 
 
-def plan_mismatch(name: str, stored: str, given: str) -> StorageError:
-    """The error for a study launched with another plan: two plans in one study would mix
-    two budgets."""
-    return StorageError(
-        f"study {name!r} in this storage was launched with another plan "
-        f"(plan_hash {stored[:12]}, this spec gives {given[:12]}): the spec's methods, "
-        "budget, seeds or search space changed. Use a new study name, or restore the old spec."
-    )
+def check_plan(name: str, attrs: Mapping[str, Any], plan_hash: str) -> None:
+    """Raise StorageError unless study ``name`` (its user ``attrs``) was launched with the
+    plan ``plan_hash``: two plans in one study would mix two budgets. A study without a
+    plan hash passes. The driver (``StudyStore.open_or_create``) and readers
+    (``sweeper.study.open_study``) both check here."""
+    stored = attrs.get("plan_hash")
+    if stored is not None and stored != plan_hash:
+        raise StorageError(
+            f"study {name!r} in this storage was launched with another plan "
+            f"(plan_hash {stored[:12]}, this spec gives {plan_hash[:12]}): the spec's methods, "
+            "budget, seeds or search space changed. Use a new study name, or restore the old "
+            "spec."
+        )

@@ -1,7 +1,9 @@
 """Database URLs: what they name, whether they can be used, and how they are opened.
 
-The one place that says how a URL is connected to, for the writer and for readers alike
-(``open_storage`` builds the Optuna storage of both): ``postgresql://`` means psycopg 3
+The one place that says how a URL is connected to, for the writer and for readers alike:
+``engine_arguments`` gives the SQLAlchemy engine's arguments, which ``open_engine`` (the
+engines this project builds) and ``open_storage`` (Optuna's storage, which builds its own
+engine from a URL and these arguments) both use. ``postgresql://`` means psycopg 3
 (``resolve_url``), an SQLite file is put in WAL journal mode and opened with a long busy
 timeout so a reader can read a study while the driver writes it, and a reader's
 connections are read-only, kept from writing by the database itself
@@ -22,6 +24,7 @@ from sweeper.storage.errors import StorageError, database_error, redact
 
 if TYPE_CHECKING:  # optuna and sqlalchemy are imported where used: `sweeper --help` stays light
     import optuna
+    from sqlalchemy.engine import Engine
 
 #: seconds a SQLite connection waits for a lock before giving up
 SQLITE_TIMEOUT = 60.0
@@ -59,7 +62,7 @@ def check_storage(url: str) -> None:
     SQLite: the file's directory must exist or be creatable, and be writable. Any other
     backend: a connection is opened and ``SELECT 1`` run.
     """
-    from sqlalchemy import create_engine, text
+    from sqlalchemy import text
     from sqlalchemy.exc import ArgumentError, NoSuchModuleError
 
     try:
@@ -77,11 +80,9 @@ def check_storage(url: str) -> None:
         if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
             raise StorageError(f"storage: cannot create {path}: {parent} is not writable")
         return
-    resolved = resolve_url(url)
-    # a host that drops packets must not hang the launch
-    connect_args = {"connect_timeout": 10} if resolved.startswith("postgresql") else {}
     try:
-        engine = create_engine(resolved, connect_args=connect_args)
+        # a host that drops packets must not hang the launch
+        engine = open_engine(url, connect_timeout=10)
     except (ArgumentError, NoSuchModuleError, ImportError) as e:
         raise StorageError(f"storage: cannot use {redact(url)}: {e}") from None
     try:
@@ -112,18 +113,14 @@ def open_storage(
     path = sqlite_path(resolved)
     if read_only:
         create = False
-        engine_kwargs = read_only_engine_kwargs(resolved)
-    elif path is not None:
-        if create:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            # WAL is a property of the database file: once set, every later connection (the
-            # dashboard's too) reads without blocking the writer and is never blocked by it.
-            with sqlite3.connect(path, timeout=SQLITE_TIMEOUT) as connection:
-                connection.execute("PRAGMA journal_mode=WAL")
-            connection.close()
-        engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT}}
-    else:
-        engine_kwargs = {"pool_pre_ping": True}
+    elif path is not None and create:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # WAL is a property of the database file: once set, every later connection (the
+        # dashboard's too) reads without blocking the writer and is never blocked by it.
+        with sqlite3.connect(path, timeout=SQLITE_TIMEOUT) as connection:
+            connection.execute("PRAGMA journal_mode=WAL")
+        connection.close()
+    engine_kwargs = engine_arguments(resolved, read_only=read_only)
 
     def build() -> optuna.storages.RDBStorage:
         return optuna.storages.RDBStorage(
@@ -136,6 +133,43 @@ def open_storage(
         except (SQLAlchemyError, optuna.exceptions.StorageInternalError):
             time.sleep(0.5)
     return build()
+
+
+def engine_arguments(url: str, *, read_only: bool = False) -> dict[str, Any]:
+    """The ``create_engine`` arguments for ``url``: how a writer or a reader connects.
+
+    A reader (``read_only``): connections the database keeps from writing
+    (``read_only_engine_kwargs``). The writer: SQLite with a busy timeout of
+    ``SQLITE_TIMEOUT`` s (it waits out a reader's lock instead of failing), any other
+    database with ``pool_pre_ping`` (a pooled connection the server dropped is replaced).
+    """
+    resolved = resolve_url(url)
+    if read_only:
+        return read_only_engine_kwargs(resolved)
+    if sqlite_path(resolved) is not None:
+        return {"connect_args": {"timeout": SQLITE_TIMEOUT}}
+    return {"pool_pre_ping": True}
+
+
+def open_engine(
+    url: str, *, read_only: bool = False, connect_timeout: float | None = None
+) -> Engine:
+    """The SQLAlchemy engine of ``url``, connected as ``engine_arguments`` says.
+
+    ``connect_timeout``: the seconds a PostgreSQL connection may take to open (other
+    databases ignore it). Raises SQLAlchemy's ``ArgumentError`` or ``NoSuchModuleError``,
+    or ``ImportError``, for a URL that cannot be used.
+    """
+    from sqlalchemy import create_engine
+
+    resolved = resolve_url(url)
+    kwargs = engine_arguments(resolved, read_only=read_only)
+    if connect_timeout is not None and resolved.startswith("postgresql"):
+        kwargs["connect_args"] = {
+            **kwargs.get("connect_args", {}),
+            "connect_timeout": connect_timeout,
+        }
+    return create_engine(resolved, **kwargs)
 
 
 def check_writable(url: str) -> None:

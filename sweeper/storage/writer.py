@@ -29,9 +29,9 @@ from agent.config import Outcome
 from sweeper.storage.errors import (
     StorageError,
     StudyBusy,
+    check_plan,
     is_database_error,
     is_outage,
-    plan_mismatch,
     write_error,
 )
 from sweeper.storage.ledger import current_trials
@@ -156,7 +156,7 @@ class StudyStore:
                 study_id = storage.get_study_id_from_name(name)
             store = cls(storage, study_id, grace)
         stored = store.attrs
-        if "plan_hash" not in stored:  # new, or a creation cut short before its attrs
+        if stored.get("plan_hash") is None:  # new, or a creation cut short before its attrs
             if store.trials():
                 raise StorageError(
                     f"storage: study {name!r} has trials but no plan_hash: it was not "
@@ -164,8 +164,8 @@ class StudyStore:
                 )
             for key, value in attrs.items():
                 storage.set_study_user_attr(study_id=store.study_id, key=key, value=value)
-        elif stored["plan_hash"] != attrs["plan_hash"]:
-            raise plan_mismatch(name, stored["plan_hash"], attrs["plan_hash"])
+        else:
+            check_plan(name, stored, attrs["plan_hash"])
         return store
 
     @property
