@@ -123,6 +123,24 @@ def load(directory: str, config: TrialConfig) -> Snapshot | None:
     )
 
 
+def saved_step(directory: str) -> int | None:
+    """The env step of the checkpoint in ``directory``, read without checking the file (so
+    cheaply: a local file is memory-mapped and only its step is read); None when there is
+    none or it cannot be read."""
+    location = _location(directory)
+    try:
+        if storage_io.is_uri(location):
+            source = storage_io.open_read(location)
+            if source is None:
+                return None
+            with source:
+                return int(torch.load(source, map_location="cpu", weights_only=True)["step"])
+        state = torch.load(location, map_location="cpu", weights_only=True, mmap=True)
+        return int(state["step"])
+    except Exception:  # missing, truncated, unreadable: no step to resume from
+        return None
+
+
 def _location(directory: str) -> str:
     return storage_io.join(directory, FILENAME)
 

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from agent.config import Outcome, TrialResult
-from agent.storage_io import CHECKPOINT_FILE, exists, is_uri, join, remove
+from agent.storage_io import is_uri, remove
 from sweeper.artifacts import ArtifactStore, artifact_location, upload_once
 from sweeper.execution import (
     Errored,
@@ -213,18 +213,19 @@ class Driver:
             with contextlib.suppress(Exception):
                 self.store.interrupt(job.trial_id, "stopped by the user", None)
         self.progress.close()
-        resumable = sum(has_checkpoint(job.entry) for job in self.jobs.values())
-        fresh = len(self.jobs) - resumable
         print(
             f"\nsweeper launch: stopped; {len(self.jobs)} trial(s) in flight were interrupted; "
-            f"the next launch resumes {resumable} from their checkpoints"
-            + (
-                f" and starts {fresh} again from step 0 (no checkpoint written yet)"
-                if fresh
-                else ""
-            ),
+            "the next launch:",
             file=self.stream,
         )
+        for key, job in sorted(self.jobs.items()):
+            step = checkpoint_step(job.entry)
+            print(
+                f"  {key}: resumes from step {step:,} (its checkpoint)"
+                if step is not None
+                else f"  {key}: restarts from step 0 (no checkpoint written yet)",
+                file=self.stream,
+            )
         return EXIT_INTERRUPTED
 
 
@@ -268,13 +269,13 @@ def record_result(store: StudyStore, job: Job, result: TrialResult) -> None:
     store.complete(job.trial_id, result.auc, attrs)
 
 
-def has_checkpoint(entry: PlanEntry) -> bool:
-    """Whether the trial of ``entry`` has written a checkpoint (a relaunch resumes it)."""
+def checkpoint_step(entry: PlanEntry) -> int | None:
+    """The env step the trial of ``entry`` would resume from: its checkpoint's, or None
+    when it has none (or it cannot be read: then it restarts from step 0)."""
+    from agent.checkpoint import saved_step  # torch: only when a launch is stopped
+
     location = entry.trial_config.checkpoint_dir
-    try:
-        return location is not None and exists(join(location, CHECKPOINT_FILE))
-    except Exception:  # an unreachable object store: say nothing was kept
-        return False
+    return None if location is None else saved_step(location)
 
 
 def remove_checkpoint(entry: PlanEntry, progress: LaunchProgress) -> None:

@@ -11,10 +11,21 @@ from __future__ import annotations
 
 import heapq
 import os
+import threading
+import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from sweeper.plan import PlanEntry
+from sweeper.plan import PlanEntry, run_order
+from sweeper.storage import current_trials
+
+if TYPE_CHECKING:
+    from optuna.trial import FrozenTrial
+
+    from agent.calibrate import TrialCosts
+    from agent.config import TrialConfig
+    from sweeper.spec import Execution
 
 #: above this much trial time on CPU, ``sweeper launch`` and ``sweeper plan`` warn
 CPU_WARNING_SECONDS = 24 * 3600
@@ -59,10 +70,20 @@ def local_workers(max_concurrent: int, threads_per_trial: int, cores: int | None
 
 @dataclass(frozen=True)
 class TrialEstimate:
-    """One trial's predicted wall seconds and where the figure comes from."""
+    """One trial's predicted wall seconds, where the figure comes from, and (calibrated)
+    the costs of its parts, which say how the seconds spread over its steps."""
 
     seconds: float
     source: str  # "calibrated" or "measured"
+    config: TrialConfig
+    costs: TrialCosts | None = None
+
+    def until(self, step: int) -> float:
+        """Predicted seconds from the trial's start to env step ``step``: by its parts'
+        costs (random-action seed steps are cheap), else evenly over its steps."""
+        if self.costs is not None:
+            return self.costs.seconds(self.config, step)
+        return self.seconds * min(step, self.config.total_steps) / self.config.total_steps
 
 
 def measured_seconds(trials: Iterable[tuple[str, float]]) -> dict[str, float]:
@@ -74,23 +95,107 @@ def measured_seconds(trials: Iterable[tuple[str, float]]) -> dict[str, float]:
     return {m: sum(v) / len(v) for m, v in by_method.items()}
 
 
+def finished(
+    trials: Iterable[FrozenTrial], keys: Iterable[str]
+) -> tuple[set[str], dict[str, float]]:
+    """(the ``keys`` done, per method the mean seconds of its done trials) of a study's
+    ``trials``, by each key's current trial."""
+    current = current_trials(trials)
+    done = {k for k in keys if k in current and current[k].state.name == "COMPLETE"}
+    seconds = [
+        (k.split("/")[0], float(current[k].user_attrs["seconds"]))
+        for k in sorted(done)
+        if current[k].user_attrs.get("seconds")
+    ]
+    return done, measured_seconds(seconds)
+
+
 def estimate_trials(
-    entries: Sequence[PlanEntry], measured: dict[str, float], calibrate: bool = True
+    entries: Sequence[PlanEntry], measured: dict[str, float], seconds_per_part: float = 0.5
 ) -> dict[str, TrialEstimate]:
     """Each entry's ``TrialEstimate``: its method's ``measured`` mean where there is one,
-    else calibrated on this machine (``calibrate=False``: left out)."""
+    else calibrated on this machine, timing each part for ``seconds_per_part``."""
     estimates = {}
     to_calibrate = [e for e in entries if e.method not in measured]
     for entry in entries:
         if entry.method in measured:
-            estimates[entry.key] = TrialEstimate(measured[entry.method], "measured")
-    if to_calibrate and calibrate:
+            estimates[entry.key] = TrialEstimate(
+                measured[entry.method], "measured", entry.trial_config
+            )
+    if to_calibrate:
         from agent.calibrate import Calibration
 
-        with Calibration() as calibration:
+        with Calibration(seconds=seconds_per_part) as calibration:
             for entry in to_calibrate:
-                costs = calibration.costs(entry.trial_config)
+                config = entry.trial_config
+                costs = calibration.costs(config)
                 estimates[entry.key] = TrialEstimate(
-                    costs.seconds(entry.trial_config), "calibrated"
+                    costs.seconds(config), "calibrated", config, costs
                 )
     return estimates
+
+
+class InBackground:
+    """``estimate_trials`` in a daemon thread, so the calibration runs while Ray and the
+    workers start; ``result()`` waits for it: the estimates, or the exception it raised."""
+
+    def __init__(
+        self, entries: Sequence[PlanEntry], measured: dict[str, float], seconds_per_part: float
+    ) -> None:
+        self.seconds = 0.0
+        self._result: dict[str, TrialEstimate] | BaseException | None = None
+        self._thread = threading.Thread(
+            target=self._run, args=(entries, measured, seconds_per_part), daemon=True
+        )
+        self._thread.start()
+
+    def _run(
+        self, entries: Sequence[PlanEntry], measured: dict[str, float], seconds: float
+    ) -> None:
+        start = time.perf_counter()
+        try:
+            self._result = estimate_trials(entries, measured, seconds)
+        except BaseException as e:  # handed to result(): the launch goes on without
+            self._result = e
+        self.seconds = time.perf_counter() - start
+
+    def result(self) -> dict[str, TrialEstimate] | BaseException:
+        self._thread.join()
+        assert self._result is not None
+        return self._result
+
+
+def summary_lines(
+    entries: Sequence[PlanEntry],
+    done: set[str],
+    estimates: dict[str, TrialEstimate],
+    execution: Execution,
+    calibration_seconds: float | None = None,
+) -> list[str]:
+    """What the trials left will cost: trial time, wall time at the spec's ``execution``
+    (concurrency, threads, GPUs) on this machine, how the figures were made (a calibration
+    of ``calibration_seconds``), and the warning past a day of CPU."""
+    threads_per_trial = execution.threads_per_trial
+    left = [e for e in sorted(entries, key=run_order) if e.key not in done]
+    trial_seconds = sum(estimates[e.key].seconds for e in left)
+    workers = local_workers(execution.max_concurrent, threads_per_trial)
+    wall = makespan([estimates[e.key].seconds for e in left], workers)
+    lines = [
+        f"left: {len(left)} of {len(entries)} trials, {format_duration(trial_seconds)} of "
+        f"trial time; about {format_duration(wall)} at {workers} trial(s) at once on this "
+        f"machine ({os.cpu_count()} cores, {threads_per_trial} thread(s) a trial)"
+    ]
+    sources = {e.source for e in estimates.values()}
+    if "calibrated" in sources and calibration_seconds is not None:
+        load = os.getloadavg()[0]
+        lines.append(
+            f"calibrated in {format_duration(calibration_seconds)} here, at a load average "
+            f"of {load:.1f}" + (": a busy machine gives slower figures" if load > 1 else "")
+        )
+    if execution.gpus_per_trial == 0 and trial_seconds > CPU_WARNING_SECONDS:
+        lines.append(
+            f"warning: this is {format_duration(trial_seconds)} of CPU trial time; on a "
+            "cluster with GPUs set execution.gpus_per_trial (e.g. 0.25: four trials a GPU), "
+            "see docs/cluster.md"
+        )
+    return lines

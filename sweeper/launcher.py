@@ -32,6 +32,7 @@ from agent.envs import env_class
 from agent.metrics import metric_key
 from sweeper import random_agent
 from sweeper.driver import Driver
+from sweeper.estimate import InBackground, TrialEstimate, finished, summary_lines
 from sweeper.execution import WorkerPool, start_ray
 from sweeper.plan import Plan, build_plan
 from sweeper.progress import LaunchProgress
@@ -57,6 +58,9 @@ Stage = Callable[[StudySpec, StudyStore], Plan]
 HEARTBEAT_SECONDS = 15.0
 #: exit code of a launch refused because another live driver runs the study
 EXIT_BUSY = 3
+#: seconds each part of a trial is timed for the launch's estimate (``sweeper plan``
+#: takes longer over it: 0.5 s)
+CALIBRATION_SECONDS = 0.1
 
 
 def prepare(
@@ -147,7 +151,8 @@ def launch(
         except StorageError as e:
             print(f"sweeper launch: {e}", file=stream)
             return 2
-        if stage is None and all_done(spec, plan):  # a relaunch with nothing left: no Ray
+        study = read_study(spec, plan)
+        if stage is None and all_done(spec, plan, study):  # a relaunch with nothing left: no Ray
             total = len(plan.entries)
             print(
                 f"study {spec.study!r} in {redact(spec.storage_url)}: {total} of {total} "
@@ -155,6 +160,8 @@ def launch(
                 file=stream,
             )
             return 0
+        # the calibration runs while Ray and the workers start
+        estimate = None if stage is not None else start_estimate(plan, study)
         try:
             started_ray = start_ray(execution.address, num_cpus=local_cpus(execution))
         except SystemExit:  # Ray's own SIGTERM handlers, set while it starts, exit this way
@@ -164,23 +171,30 @@ def launch(
             print(cannot_reach_message(execution.address, e), file=stream)
             return 2
         try:
-            return _launch_on_ray(spec, plan, train, stream, stage)
+            return _launch_on_ray(spec, plan, train, stream, stage, estimate)
         finally:
             if started_ray:
                 ray.shutdown()
 
 
-def all_done(spec: StudySpec, plan: Plan) -> bool:
-    """Whether the study already holds every key of ``plan`` done (and its random agent
-    measured, if the spec asks for it), read read-only. Anything else, a study that does
-    not exist or cannot be read included, is False: the launch then runs and reports it."""
+def read_study(spec: StudySpec, plan: Plan) -> tuple[list[Any], dict[str, Any]] | None:
+    """The study's trials and user attrs, read read-only; None when there is nothing to
+    read (no study, another plan, an unreachable database: the launch then reports it)."""
     try:
         with open_study(
             spec.storage_url, spec.study, write=False, plan_hash=plan.hash, grace=0
         ) as store:
-            trials, attrs = store.trials(), store.attrs
-    except StorageError:  # NoStudy, another plan, an unreachable database
+            return store.trials(), store.attrs
+    except StorageError:
+        return None
+
+
+def all_done(spec: StudySpec, plan: Plan, study: tuple[list[Any], dict[str, Any]] | None) -> bool:
+    """Whether the study (``read_study``) holds every key of ``plan`` done, and its random
+    agent measured if the spec asks for it."""
+    if study is None:
         return False
+    trials, attrs = study
     if spec.random_episodes and random_agent.ATTR not in attrs:
         return False
     return all(c.done == c.planned for c in ledger(plan.keys(), trials, False).values())
@@ -192,6 +206,7 @@ def _launch_on_ray(
     train: Callable[..., Any] | None,
     stream: TextIO,
     stage: Stage | None,
+    estimate: InBackground | None = None,
 ) -> int:
     """Size the worker pool to the Ray cluster, start it and run the study."""
     execution = spec.execution
@@ -208,13 +223,18 @@ def _launch_on_ray(
         stall_timeout=execution.stall_timeout,
     )
     try:
-        return _run_study(spec, plan, pool, stream, stage)
+        return _run_study(spec, plan, pool, stream, stage, estimate)
     finally:
         pool.shutdown()
 
 
 def _run_study(
-    spec: StudySpec, plan: Plan, pool: WorkerPool, stream: TextIO, stage: Stage | None = None
+    spec: StudySpec,
+    plan: Plan,
+    pool: WorkerPool,
+    stream: TextIO,
+    stage: Stage | None = None,
+    estimate: InBackground | None = None,
 ) -> int:
     """Open the study as its driver, its heartbeat beating until it lets go; run it."""
     optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -237,7 +257,7 @@ def _run_study(
                             f"{store.attrs.get('revision')}; this is {attrs['revision']}",
                             file=stream,
                         )
-                    return _sync_and_drive(spec, store, pool, beat, stream, stage)
+                    return _sync_and_drive(spec, store, pool, beat, stream, stage, estimate)
             except StorageError as e:  # the stage cannot be run (sweeper confirm)
                 print(f"sweeper {'launch' if stage is None else 'confirm'}: {e}", file=stream)
                 return 2
@@ -258,6 +278,7 @@ def _sync_and_drive(
     beat: Heartbeat,
     stream: TextIO,
     stage: Stage | None = None,
+    estimate: InBackground | None = None,
 ) -> int:
     """Give the plan's keys their trials, then run what is left."""
     # bound to the study: its checkpoints are its own
@@ -273,5 +294,32 @@ def _sync_and_drive(
     if not todo:
         return 0
     pool.shrink(len(todo))
-    progress = LaunchProgress(spec.study, plan.keys(), spec.budget.env_steps, stream)
+    estimates = None if estimate is None else print_estimate(spec, plan, estimate, stream)
+    progress = LaunchProgress(
+        spec.study, plan.keys(), spec.budget.env_steps, stream,
+        estimates=estimates, workers=len(pool),
+    )  # fmt: skip
     return Driver(spec, store, pool, progress, beat, stream).run(todo)
+
+
+def start_estimate(plan: Plan, study: tuple[list[Any], dict[str, Any]] | None) -> InBackground:
+    """Start estimating the trials of ``plan`` not done in ``study`` (``read_study``)."""
+    done, measured = finished(study[0] if study else [], plan.keys())
+    left = [e for e in plan.entries if e.key not in done]
+    return InBackground(left, measured, CALIBRATION_SECONDS)
+
+
+def print_estimate(
+    spec: StudySpec, plan: Plan, estimate: InBackground, stream: TextIO
+) -> dict[str, TrialEstimate] | None:
+    """Print what the trials left will cost (``sweeper.estimate``: from the study's finished
+    trials, else a quick calibration) before they start; return the estimates, or None when
+    they could not be made (the launch goes on without them)."""
+    estimates = estimate.result()
+    if isinstance(estimates, BaseException):  # a calibration that fails must not stop a study
+        print(f"sweeper launch: no estimate: {type(estimates).__name__}: {estimates}", file=stream)
+        return None
+    done = {e.key for e in plan.entries if e.key not in estimates}
+    lines = summary_lines(plan.entries, done, estimates, spec.execution, estimate.seconds)
+    print("\n".join(f"estimate: {line}" for line in lines), file=stream)
+    return estimates

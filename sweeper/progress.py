@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Mapping
 from typing import TextIO
 
 from agent.config import Outcome
+from sweeper.estimate import TrialEstimate, format_duration, makespan
 from sweeper.storage import KeyStatus
 
 #: what a key can be during a launch: left or running, then how its trial ended
@@ -26,12 +28,9 @@ STATES: tuple[State, ...] = (
 )
 #: the states of a key whose trial is recorded with a result
 DONE = (Outcome.COMPLETED, Outcome.DIVERGED)
-
-
-def format_seconds(seconds: float) -> str:
-    """``3725`` -> ``"1:02:05"``."""
-    seconds = max(0, round(seconds))
-    return f"{seconds // 3600}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}"
+#: predicted seconds of work a launch must have done before its own pace corrects the
+#: estimates (before that, a slow start-up would be taken for a slow machine)
+MIN_PACED_WORK = 60.0
 
 
 def format_count(n: float) -> str:
@@ -53,7 +52,13 @@ class LaunchProgress:
         interval: float = 1.5,
         log_interval: float = 30.0,
         tty: bool | None = None,
+        estimates: Mapping[str, TrialEstimate] | None = None,
+        workers: int = 1,
     ) -> None:
+        """``estimates`` (``sweeper.estimate``): each key's predicted seconds, for an ETA
+        that knows a trial's cheap seed phase from its training; without them the ETA is
+        the env steps left over the launch's env steps per second. ``workers``: trials at
+        once."""
         self.study = study
         self.env_steps = env_steps
         self.stream = sys.stderr if stream is None else stream
@@ -62,7 +67,10 @@ class LaunchProgress:
         # the launch marks the keys it runs; the others were done before it
         self.states: dict[str, State] = dict.fromkeys(keys, Outcome.COMPLETED)
         self.steps: dict[str, int] = {}
-        self._start: tuple[float, float] | None = None  # (time, work) when the launch began
+        self.estimates, self.workers = estimates, workers
+        # (time, env steps done, predicted seconds done) when the launch began
+        self._start: tuple[float, float, float] | None = None
+        self._last, self._busy = 0.0, 0.0  # the last eta() call; trial-seconds since start
         self._last_draw = -float("inf")
         self._drawn_lines = 0
 
@@ -88,15 +96,50 @@ class LaunchProgress:
                 total += self.env_steps
         return total
 
+    def predicted_work(self) -> float:
+        """Predicted seconds of the work done so far, over the keys with an estimate."""
+        total = 0.0
+        for key, estimate in (self.estimates or {}).items():
+            state = self.states.get(key)
+            if state == KeyStatus.RUNNING:
+                total += estimate.until(self.steps.get(key, 0))
+            elif state is not None and state != KeyStatus.LEFT:
+                total += estimate.seconds
+        return total
+
     def eta(self, now: float) -> tuple[float, float | None]:
-        """(env steps/s since the launch began, seconds left or None if unknown)."""
-        work = self.work()
+        """(env steps/s since the launch began, seconds left or None if unknown).
+
+        With estimates: the trials left handed to the workers (``makespan``), the running
+        ones holding theirs, scaled by how much slower (or faster) than predicted this
+        launch has run once it has done ``MIN_PACED_WORK`` predicted seconds of work."""
+        work, predicted = self.work(), self.predicted_work()
         if self._start is None:
-            self._start = (now, work)
+            self._start = (now, work, predicted)
+            self._last = now
+        running = sum(state == KeyStatus.RUNNING for state in self.states.values())
+        self._busy += running * (now - self._last)  # seconds of trials running, summed
+        self._last = now
         elapsed, done = now - self._start[0], work - self._start[1]
         rate = done / elapsed if elapsed > 0 else 0.0
-        remaining = self.env_steps * len(self.states) - work
-        return rate, (remaining / rate if rate > 0 else None)
+        if self.estimates is None:
+            remaining = self.env_steps * len(self.states) - work
+            return rate, (remaining / rate if rate > 0 else None)
+        busy, left = [], []
+        for key, state in self.states.items():
+            estimate = self.estimates.get(key)
+            if estimate is None:
+                continue
+            if state == KeyStatus.RUNNING:
+                busy.append(max(0.0, estimate.seconds - estimate.until(self.steps.get(key, 0))))
+            elif state == KeyStatus.LEFT:
+                left.append(estimate.seconds)
+        seconds = makespan(left, self.workers, busy[: self.workers])
+        predicted_done = predicted - self._start[2]
+        if predicted_done >= MIN_PACED_WORK and self._busy > 0:
+            # the pace: the workers' wall time so far over the predicted seconds they did
+            seconds *= self._busy / predicted_done
+        return rate, seconds
 
     def lines(self, now: float) -> list[str]:
         """The display: a summary line, then one line per method."""
@@ -114,7 +157,7 @@ class LaunchProgress:
             summary += f" ({counts[Outcome.DIVERGED]} diverged)"
         summary += f", {counts[KeyStatus.RUNNING]} running, {counts[Outcome.FAILED]} failed"
         summary += f" | {format_count(rate)} env steps/s"
-        summary += f" | ETA {format_seconds(eta) if eta is not None else '?'}"
+        summary += f" | ETA {format_duration(eta) if eta is not None else '?'}"
         lines = [summary]
         width = max(len(m) for m in methods)
         for method, (method_done, total) in methods.items():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 import pytest
+from conftest import CI_SPEC
 
 from agent.calibrate import Calibration, TrialCosts, per_call
 from agent.config import SACConfig, TrialConfig
@@ -125,8 +126,51 @@ def test_sweeper_plan_calibrates_a_new_study_and_measures_a_launched_one(
     assert "left: 0 of 2 trials" in out and "calibrated in" not in out
 
 
-def test_a_plan_of_more_than_a_day_of_cpu_warns_naming_the_gpu_option():
-    from sweeper.show_plan import cpu_warning
+def test_the_summary_counts_what_is_left_and_warns_past_a_day_of_cpu():
+    from sweeper.estimate import TrialEstimate, summary_lines
+    from sweeper.plan import build_plan
+    from sweeper.spec import load_spec
 
-    text = cpu_warning(2 * 86_400)
-    assert "2 d" in text and "execution.gpus_per_trial" in text and "docs/cluster.md" in text
+    spec = load_spec(CI_SPEC)
+    entries = build_plan(spec).entries
+    hours = {e.key: TrialEstimate(15 * 3600.0, "measured", e.trial_config) for e in entries}
+    cpu = spec.execution.model_copy(update={"max_concurrent": 2, "gpus_per_trial": 0})
+    gpu = cpu.model_copy(update={"gpus_per_trial": 0.5})
+    lines = summary_lines(entries, set(), hours, cpu)
+    assert lines[0].startswith("left: 2 of 2 trials, 1 d 6 h of trial time; about 15 h at ")
+    assert "execution.gpus_per_trial" in lines[-1] and "docs/cluster.md" in lines[-1]
+    assert len(summary_lines(entries, set(), hours, gpu)) == 1  # GPUs: no warning
+    assert summary_lines(entries, {entries[0].key}, hours, cpu)[0].startswith(
+        "left: 1 of 2 trials, 15 h of trial time"
+    )
+
+
+def test_the_launch_eta_knows_the_seed_phase_and_follows_the_pace():
+    from agent.calibrate import TrialCosts
+    from sweeper.estimate import TrialEstimate
+    from sweeper.progress import LaunchProgress
+
+    config = TrialConfig(total_steps=1000, seed_steps=500, eval_every=1000, eval_episodes=1)
+    # seed steps are free, training steps 1 s: a trial is 500 s, all in its second half
+    costs = TrialCosts(setup=0.0, seed_step=0.0, train_step=1.0, eval_step=0.0)
+    keys = ["a/0/0", "a/1/0", "a/2/0"]
+    estimates = {k: TrialEstimate(costs.seconds(config), "calibrated", config, costs) for k in keys}
+    progress = LaunchProgress("s", keys, 1000, estimates=estimates, workers=2)
+    for key in keys:
+        progress.set_state(key, "left")
+    progress.set_state("a/0/0", "running")
+    progress.set_state("a/1/0", "running")
+    assert progress.eta(now=0.0)[1] == pytest.approx(1000)  # two 500 s trials, then one
+    progress.set_step("a/0/0", 400)
+    progress.set_step("a/1/0", 400)
+    # 800 seed steps done in 10 s: a rate would say 2 s left; the costs know better
+    assert progress.eta(now=10.0)[1] == pytest.approx(1000)
+    progress.set_step("a/0/0", 600)
+    progress.set_step("a/1/0", 600)
+    # 200 predicted seconds done in 2 trials x 110 s (the "free" seed steps took 10 s)
+    assert progress.eta(now=110.0)[1] == pytest.approx((400 + 500) * 220 / 200)
+    progress.set_step("a/0/0", 700)
+    progress.set_step("a/1/0", 700)
+    # 400 predicted seconds in 2 trials x 210 s: 1.05 x slower than predicted
+    assert progress.eta(now=210.0)[1] == pytest.approx((300 + 500) * 420 / 400)
+    assert progress.lines(now=210.0)[0].endswith("ETA 14 min")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 import uuid
 from pathlib import Path
 
@@ -67,7 +68,9 @@ def check_ci_study(study: optuna.Study) -> None:
     assert study_attrs["driver"] is None  # released
 
 
-def test_launch_ci_end_to_end_then_status_and_resume(tmp_path, monkeypatch, capsys):
+def test_launch_ci_end_to_end_then_status_then_a_relaunch_reruns_nothing(
+    tmp_path, monkeypatch, capsys
+):
     monkeypatch.chdir(tmp_path)  # the default storage and checkpoints go under runs/ci/
     assert cli.main(["launch", str(CI_SPEC)]) == 0
     url = "sqlite:///runs/ci/study.db"
@@ -360,9 +363,8 @@ def test_more_torch_threads_than_cpus_is_refused_with_the_fix(tmp_path):
 def test_progress_display():
     import io
 
-    from sweeper.progress import LaunchProgress, format_seconds
+    from sweeper.progress import LaunchProgress
 
-    assert format_seconds(3725) == "1:02:05"
     keys = ["pixel/0/0", "pixel/1/0", "vae/0/0", "vae/1/0"]
     stream = io.StringIO()
     progress = LaunchProgress("s", keys, env_steps=1000, stream=stream, tty=True)
@@ -376,7 +378,7 @@ def test_progress_display():
     assert rate == 150.0  # (1000 + 500) steps in 10 s
     assert eta == pytest.approx((4000 - 2500) / 150.0)
     assert progress.lines(now=10.0) == [
-        "s: 2/4 trials done (1 diverged), 1 running, 0 failed | 150 env steps/s | ETA 0:00:10",
+        "s: 2/4 trials done (1 diverged), 1 running, 0 failed | 150 env steps/s | ETA 10 s",
         "  pixel  2/2 done",
         "  vae    0/2 done  running 0/0 @ 500",
     ]
@@ -516,25 +518,72 @@ def test_workers_import_the_agent_and_env_before_their_first_trial():
 def test_a_failing_warm_up_does_not_kill_the_worker():
     """The warm-up import failing (here: an unknown env) leaves the actor up; the trial
     then reports the error, instead of the pool replacing the actor forever."""
-    from sweeper.execution import WorkerPool
+    from conftest import tiny
+
+    from sweeper.execution import Errored, Finished, WorkerPool
 
     pool = WorkerPool(1, env="no_such_env")
     try:
         _wait_idle(pool, 1)
+        actor = pool._slots[0].actor
+        pool.submit("doomed", tiny(env="no_such_env"))
+        ended = []
+        wait_until(
+            lambda: (
+                ended.extend(e for e in pool.poll(0.5) if isinstance(e, Errored | Finished))
+                or ended
+            ),
+            120,
+            "the trial's end",
+        )
+        (event,) = ended
+        assert isinstance(event, Errored) and event.token == "doomed"
+        assert "no_such_env" in event.error, event.error
+        assert pool._slots[0].actor is actor  # the same actor, idle again
+        assert pool.idle == 1
     finally:
         pool.shutdown()
 
 
-def test_shrink_kills_idle_workers_only_down_to_the_size():
-    from sweeper.execution import WorkerPool
+def wait_for_go(config, report=None):
+    """A trial that reports step 0, then waits for a file ``go`` in its checkpoint_dir."""
+    go = Path(config.checkpoint_dir) / "go"
+    report(0, {"success_rate": 0.0, "final_distance": 1.0})
+    deadline = time.monotonic() + 120
+    while not go.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return always_succeed(config, report)
 
-    pool = WorkerPool(2, train=always_succeed)
+
+def test_shrink_kills_idle_workers_only_down_to_the_size(tmp_path):
+    from conftest import tiny
+
+    from sweeper.execution import Finished, Reported, WorkerPool
+
+    pool = WorkerPool(2, train=wait_for_go)
     try:
         _wait_idle(pool, 2)
         pool.shrink(5)
         assert len(pool) == 2
-        pool.shrink(1)
+        pool.submit("busy", tiny(checkpoint_dir=str(tmp_path), total_steps=300))
+        wait_until(
+            lambda: any(isinstance(e, Reported) for e in pool.poll(0.5)), 120, "the busy trial"
+        )
+        pool.shrink(1)  # the idle worker goes, the busy one stays
+        assert len(pool) == 1 and pool.idle == 0
+        pool.shrink(0)  # no idle worker left to kill
         assert len(pool) == 1
+        (tmp_path / "go").touch()
+        finished = []
+        wait_until(
+            lambda: (
+                finished.extend(e.token for e in pool.poll(0.5) if isinstance(e, Finished))
+                or finished
+            ),
+            120,
+            "the busy trial to finish",
+        )
+        assert finished == ["busy"]
         _wait_idle(pool, 1)
     finally:
         pool.shutdown()
@@ -544,14 +593,27 @@ def test_the_driver_measures_the_random_agent_once_per_study(tmp_path, monkeypat
     """The 0 of the normalised scores: measured before the first trial with the spec's env
     settings, stored in the study, not measured again on a relaunch; random_episodes: 0
     skips it."""
+    from agent.envs import make_env
+    from encoders.diagnostics.exploration import random_exploration
     from sweeper import random_agent
 
     url = f"sqlite:///{tmp_path / 'study.db'}"
-    spec, plan = prepare(str(write_ci_spec(tmp_path / "ci.yaml", storage=url, random_episodes=40)))
+    env = {"name": "point_reach", "image_size": 32, "options": {"success_threshold": 0.5}}
+    path = write_ci_spec(tmp_path / "ci.yaml", storage=url, random_episodes=40, env=env)
+    spec, plan = prepare(str(path))
     assert launch(spec, plan, train=always_succeed) == 0
     measured = load(url).user_attrs["random_agent"]
-    assert measured == {**random_agent.measure_random_agent(spec), "seconds": measured["seconds"]}
-    assert measured["episodes"] == 40 and 0.0 <= measured["success_rate"] <= 1.0
+
+    def by_hand(**options) -> float:  # 40 random episodes from the study seed, on its env
+        made = make_env("point_reach", obs_mode="state", image_size=32, **options)
+        try:
+            return float(random_exploration(made, 40, seed=spec.seed, progress=False).value[0])
+        finally:
+            made.close()
+
+    assert measured["success_rate"] == by_hand(success_threshold=0.5)
+    assert by_hand(success_threshold=0.5) != by_hand()  # the spec's env options count
+    assert (measured["episodes"], measured["seed"]) == (40, spec.seed)
     first = load(url).get_trials()[0].datetime_start
     assert "random agent: success rate" in capsys.readouterr().err
 
@@ -573,6 +635,8 @@ def test_an_interrupted_launch_says_which_trials_resume_from_a_checkpoint(tmp_pa
     import io
     import types
 
+    import torch
+
     from sweeper.driver import Driver, Job
 
     path = write_ci_spec(tmp_path / "ci.yaml", checkpoints=str(tmp_path / "ck"))
@@ -585,13 +649,14 @@ def test_an_interrupted_launch_says_which_trials_resume_from_a_checkpoint(tmp_pa
     driver = Driver(spec, store, pool, progress, beat=None, stream=stream)
     for number, entry in enumerate(plan.entries):
         driver.jobs[entry.key] = Job(entry, trial_id=number, number=number)
-    written = Path(plan.entries[0].trial_config.checkpoint_dir)
-    written.mkdir(parents=True)
-    (written / "checkpoint.pt").write_bytes(b"state")
+    first = plan.entries[0]
+    folder = Path(first.trial_config.checkpoint_dir)
+    folder.mkdir(parents=True)
+    torch.save({"step": 250}, folder / "checkpoint.pt")
     assert driver.stop() == 130
     assert interrupted == [0, 1]
-    assert stream.getvalue().strip() == (
-        "sweeper launch: stopped; 2 trial(s) in flight were interrupted; the next launch "
-        "resumes 1 from their checkpoints and starts 1 again from step 0 (no checkpoint "
-        "written yet)"
-    )
+    assert stream.getvalue().strip().splitlines() == [
+        "sweeper launch: stopped; 2 trial(s) in flight were interrupted; the next launch:",
+        f"  {first.key}: resumes from step 250 (its checkpoint)",
+        f"  {plan.entries[1].key}: restarts from step 0 (no checkpoint written yet)",
+    ]
