@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
+import functools
 import io
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -16,6 +19,7 @@ from collections import Counter
 from pathlib import Path
 
 import optuna
+import psycopg
 import pytest
 import ray
 import sqlalchemy
@@ -26,22 +30,28 @@ from optuna.trial import TrialState
 from agent import train
 from agent.config import TrialResult
 from sweeper.launcher import launch, prepare
-from sweeper.storage import open_storage
+from sweeper.storage import StudyStore, open_storage
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake trains below
 
 
 def trials_of(url: str, name: str) -> list[optuna.trial.FrozenTrial]:
-    """The study's trials, or [] while the driver has not created it yet."""
+    """The study's trials, or [] while the driver has not created it yet (for polling; read
+    a result with ``stored_trials``)."""
     try:
-        storage = open_storage(url, create=False)  # the driver creates the tables
-        try:
-            return optuna.load_study(study_name=name, storage=storage).get_trials()
-        finally:
-            storage.engine.dispose()
+        return stored_trials(url, name)
     except (KeyError, sqlalchemy.exc.SQLAlchemyError, optuna.exceptions.StorageInternalError):
         return []
+
+
+def stored_trials(url: str, name: str) -> list[optuna.trial.FrozenTrial]:
+    """The study's trials; an error if the study cannot be read."""
+    storage = open_storage(url, create=False)  # the driver creates the tables
+    try:
+        return optuna.load_study(study_name=name, storage=storage).get_trials()
+    finally:
+        storage.engine.dispose()
 
 
 def check_exact_budget(trials, keys: list[str]) -> dict[str, optuna.trial.FrozenTrial]:
@@ -89,7 +99,7 @@ def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path, local_
     finally:
         driver.join(timeout=300)
     assert codes == [0]
-    trials = trials_of(url, "faults")
+    trials = stored_trials(url, "faults")
     assert len(trials) == 2  # a retry stays in its Optuna trial
     by_key = check_exact_budget(trials, plan.keys())
     retried = by_key[victim.key]
@@ -142,25 +152,38 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, loca
     keys = prepare(str(spec))[1].keys()
     log = tmp_path / "driver.log"
 
-    def done():
-        return [t for t in trials_of(url, "driver") if t.state == TrialState.COMPLETE]
+    def checkpoints_of(key: str) -> list[Path]:
+        return list((tmp_path / "checkpoints").glob(f"*/{key}/checkpoint.pt"))
 
-    def done_and_running():
+    def done_and_checkpointed():
         trials = trials_of(url, "driver")
-        running = [t for t in trials if t.state == TrialState.RUNNING and "worker" in t.user_attrs]
+        running = [
+            t
+            for t in trials
+            if t.state == TrialState.RUNNING and checkpoints_of(t.user_attrs["key"])
+        ]
         return running and any(t.state == TrialState.COMPLETE for t in trials)
 
-    # 1. SIGKILL the driver after a trial ends, while others run (Ray then kills its actors).
+    # 1. SIGKILL the driver after a trial ends, while another runs past its first
+    # checkpoint (Ray then kills its actors).
     first = start_driver(spec, local_ray, log)
     try:
-        wait_until(done_and_running, 240, "a complete trial and a running one")
+        wait_until(done_and_checkpointed, 240, "a complete trial and a checkpointed running one")
         first.send_signal(signal.SIGKILL)
         first.wait(timeout=30)
     finally:
         kill_group(first, signal.SIGKILL)
-    finished = {t.number: t.datetime_complete for t in done()}
-    stale = {t.number for t in trials_of(url, "driver") if t.state == TrialState.RUNNING}
+    finished = {
+        t.number: t.datetime_complete
+        for t in stored_trials(url, "driver")
+        if t.state == TrialState.COMPLETE
+    }
+    left = [t for t in stored_trials(url, "driver") if t.state == TrialState.RUNNING]
+    stale = {t.number for t in left}
     assert stale  # the killed driver left trials RUNNING
+    # a dead driver's trial is re-run from its checkpoint, not from step 0
+    resumable = {t.user_attrs["key"] for t in left if checkpoints_of(t.user_attrs["key"])}
+    assert resumable
 
     # 2. Relaunch, then Ctrl-C it while trials run: exit 130, in-flight trials interrupted.
     second = start_driver(spec, local_ray, log)
@@ -179,7 +202,7 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, loca
         assert second.wait(timeout=120) == 130, log.read_text()
     finally:
         kill_group(second, signal.SIGKILL)
-    trials = trials_of(url, "driver")
+    trials = stored_trials(url, "driver")
     assert not [t for t in trials if t.state == TrialState.RUNNING]
     reaped = [t for t in trials if t.user_attrs.get("outcome") == "interrupted"]
     assert any("its driver stopped" in t.user_attrs["error"] for t in reaped)  # left by run 1
@@ -191,7 +214,7 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, loca
         assert third.wait(timeout=300) == 0, log.read_text()
     finally:
         kill_group(third, signal.SIGKILL)
-    trials = trials_of(url, "driver")
+    trials = stored_trials(url, "driver")
     by_key = check_exact_budget(trials, keys)
     for number, when in finished.items():
         assert trials[number].state == TrialState.COMPLETE
@@ -202,20 +225,24 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, loca
             assert successor.user_attrs["key"] == trial.user_attrs["key"]
             assert trial.number in successor.user_attrs["supersedes"]
     assert all(t.user_attrs["curve"]["step"] == [0, 100, 200] for t in by_key.values())
+    for key in resumable:
+        assert by_key[key].user_attrs["resumed_from"] == 100, key  # its checkpoint's step
 
 
 RACER = """
-import sys, time
+import os, sys, time
+from pathlib import Path
 from agent.config import TrialResult
 from sweeper.launcher import launch, prepare
 from sweeper.storage import StudyStore
 
-spec_path, release = sys.argv[1], float(sys.argv[2])
+spec_path, ready, go = sys.argv[1], Path(sys.argv[2]), sys.argv[3]
 claim = StudyStore.claim_driver
 
 
 def claim_when_released(self):
-    while time.time() < release:  # both launches claim in the same millisecond
+    ready.write_text(repr(time.time()))  # waiting from now on: Ray joined, study opened
+    while not os.path.exists(go):  # spin: both launches claim within microseconds
         pass
     claim(self)
 
@@ -253,23 +280,38 @@ def test_two_launches_released_together_run_the_budget_once(tmp_path, local_ray,
     )
     keys = prepare(str(spec))[1].keys()
     assert len(keys) == 4
-    release = time.time() + 25  # both have joined Ray and opened the study by then
+    ready = [tmp_path / f"ready{i}" for i in range(2)]
+    go = tmp_path / "go"
     racers = [
         subprocess.Popen(
-            [sys.executable, "-c", RACER, str(spec), str(release)],
+            [sys.executable, "-c", RACER, str(spec), str(ready[i]), str(go)],
             stderr=subprocess.PIPE,
             text=True,
             cwd=tmp_path,
         )
-        for _ in range(2)
+        for i in range(2)
     ]
-    results = sorted((r.wait(timeout=240), r.stderr.read()) for r in racers)
-    assert time.time() > release + 0.5  # the race really happened at the release
+    try:
+        # released only once both wait at the claim (each has joined Ray, opened the study)
+        both_waiting = wait_until(
+            lambda: all(p.exists() for p in ready) or any(r.poll() is not None for r in racers),
+            240,
+            "both launches at the claim",
+        )
+        assert both_waiting and all(p.exists() for p in ready), "a racer ended before the claim"
+        released = time.time()
+        go.touch()
+        results = sorted((r.communicate(timeout=240)[1], r.returncode)[::-1] for r in racers)
+    finally:
+        for racer in racers:
+            racer.kill()
+    waited = [float(p.read_text()) for p in ready]
+    assert all(since < released for since in waited)  # both waited for the release
     assert [code for code, _ in results] == [0, 3], results
     busy = results[1][1].strip()
     assert len(busy.splitlines()) == 1, busy
     assert busy.startswith("sweeper launch: another `sweeper launch` drives this study")
-    trials = trials_of(url, "race")
+    trials = stored_trials(url, "race")
     check_exact_budget(trials, keys)
     assert len(trials) == 4
 
@@ -303,7 +345,8 @@ def test_a_stopped_worker_is_noticed_and_its_trial_retried(tmp_path, local_ray):
         methods={"pixel": {}},
         storage=url,
         checkpoints=str(tmp_path / "checkpoints"),
-        execution={"retries": 1, "stall_timeout": 4},
+        # a healthy worker answers within milliseconds: a retry is never taken for a stall
+        execution={"retries": 1, "stall_timeout": 15},
     )
     spec, plan = prepare(str(spec_path))
     victim = plan.entries[0]
@@ -328,7 +371,7 @@ def test_a_stopped_worker_is_noticed_and_its_trial_retried(tmp_path, local_ray):
             os.kill(stopped, signal.SIGCONT)  # lets a hung driver finish
         driver.join(timeout=120)
     assert codes == [0]
-    trials = trials_of(url, "stall")
+    trials = stored_trials(url, "stall")
     by_key = check_exact_budget(trials, plan.keys())
     assert len(trials) == 2
     retried = by_key[victim.key]
@@ -403,7 +446,7 @@ def test_confirm_stage_ledger_is_exact_under_a_worker_kill_and_a_driver_relaunch
 
     search = driver("search")
     assert search.wait(timeout=240) == 0, log.read_text()
-    searched = {t.number: t.datetime_complete for t in trials_of(url, "confirm")}
+    searched = {t.number: t.datetime_complete for t in stored_trials(url, "confirm")}
     assert len(searched) == len(search_keys) == 6
 
     def confirming():
@@ -448,7 +491,7 @@ def test_confirm_stage_ledger_is_exact_under_a_worker_kill_and_a_driver_relaunch
         assert second.wait(timeout=240) == 0, log.read_text()
     finally:
         kill_group(second, signal.SIGKILL)
-    trials = trials_of(url, "confirm")
+    trials = stored_trials(url, "confirm")
     chosen = optuna.load_study(study_name="confirm", storage=url).user_attrs["confirm"]
     assert len(chosen["keys"]) == 2 * 2 * 2 and chosen["seeds"] == [1, 2]
     by_key = check_exact_budget(trials, [*search_keys, *chosen["keys"]])
@@ -469,20 +512,30 @@ def instant(config, report=None):
 
 
 def disk_full(connection, cursor, statement, *args):
-    """An SQLite engine hook: recording a trial's value fails as on a full disk."""
+    """An engine hook: recording a trial's value fails as on a full disk, with SQLite's
+    message or PostgreSQL's code (53100)."""
     if statement.lstrip().upper().startswith("INSERT INTO TRIAL_VALUES"):
-        raise sqlite3.OperationalError("database or disk is full")
+        if connection.dialect.name == "sqlite":
+            raise sqlite3.OperationalError("database or disk is full")
+        raise psycopg.errors.DiskFull("could not extend file: No space left on device")
 
 
 @pytest.mark.slow
-def test_a_full_disk_mid_launch_exits_2_with_one_line_and_a_relaunch_finishes(tmp_path, local_ray):
-    url = f"sqlite:///{tmp_path / 'study.db'}"
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_a_full_disk_mid_launch_exits_2_with_one_line_and_a_relaunch_finishes(
+    tmp_path, local_ray, backend, request
+):
+    url = (
+        f"sqlite:///{tmp_path / 'study.db'}"
+        if backend == "sqlite"
+        else request.getfixturevalue("pg_url")
+    )
     spec_path = write_ci_spec(
         tmp_path / "spec.yaml",
         study="full",
         storage=url,
         checkpoints=str(tmp_path / "checkpoints"),
-        execution={"address": local_ray},
+        execution={"address": local_ray},  # the default grace (60 s): a full disk is not waited for
     )
     spec, plan = prepare(str(spec_path))
     stream = io.StringIO()
@@ -495,7 +548,404 @@ def test_a_full_disk_mid_launch_exits_2_with_one_line_and_a_relaunch_finishes(tm
     errors = [line for line in stream.getvalue().splitlines() if "disk is full" in line]
     assert len(errors) == 1 and errors[0].startswith("sweeper launch: "), stream.getvalue()
     assert "free space" in errors[0]
-    assert not [t for t in trials_of(url, "full") if t.state == TrialState.COMPLETE]
+    trials = stored_trials(url, "full")
+    assert not [t for t in trials if t.state == TrialState.COMPLETE]
+    assert [t for t in trials if t.state == TrialState.RUNNING]  # left for the next launch
 
     assert launch(spec, plan, train=instant, stream=io.StringIO()) == 0  # nothing was lost
-    check_exact_budget(trials_of(url, "full"), plan.keys())
+    check_exact_budget(stored_trials(url, "full"), plan.keys())
+
+
+def one_trial_spec(tmp_path: Path, study: str, url: str | None = None, **execution) -> Path:
+    """The CI spec cut to one key (pixel/0/0), its storage and checkpoints in ``tmp_path``."""
+    return write_ci_spec(
+        tmp_path / "spec.yaml",
+        study=study,
+        methods={"pixel": {}},
+        storage=url or f"sqlite:///{tmp_path / 'study.db'}",
+        checkpoints=str(tmp_path / "checkpoints"),
+        execution=execution,
+    )
+
+
+def die(config, report=None):
+    """A trial whose worker dies (SIGKILL) after its first report, every time."""
+    report(0, {"success_rate": 0.0, "final_distance": 1.0})
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+@pytest.mark.slow
+def test_more_worker_deaths_than_retries_fail_the_trial_and_a_relaunch_reruns_it(
+    tmp_path, local_ray
+):
+    spec, plan = prepare(str(one_trial_spec(tmp_path, "deaths", retries=1)))
+    stream = io.StringIO()
+    assert launch(spec, plan, train=die, stream=stream) == 1, stream.getvalue()
+    (failed,) = stored_trials(spec.storage_url, "deaths")
+    assert failed.state == TrialState.FAIL and failed.user_attrs["outcome"] == "failed"
+    assert failed.user_attrs["attempts"] == 2  # the first run and its one retry
+    deaths = failed.user_attrs["worker_deaths"]
+    assert len(deaths) == 2 and all("ActorDiedError" in death for death in deaths), deaths
+    assert failed.user_attrs["error"] == f"worker died 2 times; last: {deaths[-1]}"
+    assert "1 trial(s) failed" in stream.getvalue()
+
+    assert launch(spec, plan, train=instant, stream=io.StringIO()) == 0  # re-run, counted once
+    trials = stored_trials(spec.storage_url, "deaths")
+    (rerun,) = check_exact_budget(trials, plan.keys()).values()
+    assert rerun.number != failed.number and rerun.user_attrs["supersedes"] == [failed.number]
+    assert rerun.user_attrs["attempts"] == 1
+    assert trials[failed.number].state == TrialState.FAIL
+
+
+class FailingFile(io.FileIO):
+    """A checkpoint file whose writes fail after the first kilobyte with ENOSPC, as on a
+    disk that fills up mid-write (as tests/test_checkpoint.py fails them)."""
+
+    def write(self, data: bytes) -> int:
+        if self.tell() + len(data) > 1000:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return super().write(data)
+
+
+def full_after_first_checkpoint(config, report=None, record=None):
+    """agent.train on a checkpoint disk that fills up after the first checkpoint."""
+    from agent import storage_io, train
+
+    opened = []
+
+    class FillingDisk:  # the os module, as agent.storage_io sees it
+        def __getattr__(self, name):
+            return getattr(os, name)
+
+        def fdopen(self, fd, mode):
+            opened.append(fd)
+            return os.fdopen(fd, mode) if len(opened) == 1 else FailingFile(fd, "wb")
+
+    storage_io.os = FillingDisk()
+    try:
+        return train(config, report=report)
+    finally:
+        storage_io.os = os
+
+
+@pytest.mark.slow
+def test_a_full_checkpoint_disk_fails_the_trial_with_one_line_and_a_relaunch_resumes(
+    tmp_path, local_ray
+):
+    """A real trial (300 steps, checkpoints at 100 and 200) whose second checkpoint meets a
+    full disk: its error is the one line, the first checkpoint is kept with no partial file
+    beside it, and the next launch resumes from it."""
+    spec, plan = prepare(str(one_trial_spec(tmp_path, "ckfull")))
+    stream = io.StringIO()
+    assert launch(spec, plan, train=full_after_first_checkpoint, stream=stream) == 1
+    (failed,) = stored_trials(spec.storage_url, "ckfull")
+    assert failed.state == TrialState.FAIL and failed.user_attrs["outcome"] == "failed"
+    (kept,) = (tmp_path / "checkpoints").glob("*/pixel/0/0/*")  # nothing else in the folder
+    assert kept.name == "checkpoint.pt"
+    assert failed.user_attrs["error"] == (
+        f"OSError: checkpoint directory {kept.parent} is full (No space left on device): "
+        "free space or set checkpoints: in the spec"
+    )
+    assert sorted(failed.intermediate_values) == [0, 100, 200]  # what it reported first
+
+    assert launch(spec, plan, stream=io.StringIO()) == 0  # agent.train, the disk freed
+    (resumed,) = check_exact_budget(stored_trials(spec.storage_url, "ckfull"), plan.keys()).values()
+    assert resumed.user_attrs["supersedes"] == [failed.number]
+    assert resumed.user_attrs["resumed_from"] == 100
+    assert resumed.user_attrs["curve"]["step"] == [0, 100, 200, 300]
+
+
+def takeover_record() -> dict:
+    """The driver record of a live driver on another host that took the study over."""
+    return {"host": "elsewhere", "pid": 1, "started": None, "heartbeat": time.time() + 3600}
+
+
+def hold(config, report=None):
+    """A trial that reports step 0, then waits for a file ``release`` beside the checkpoint
+    root (at most 120 s), then finishes."""
+    report(0, {"success_rate": 0.0, "final_distance": 1.0})
+    release = Path(config.checkpoint_dir).parents[3].parent / "release"
+    deadline = time.monotonic() + 120
+    while not release.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return instant(config, report)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_a_driver_taken_over_stops_with_exit_3_at_its_next_heartbeat(
+    tmp_path, local_ray, backend, request, monkeypatch
+):
+    """A driver on another host that judged this one dead (see test_storage) claimed the
+    study: this driver's next heartbeat finds it and the launch stops, exit 3, one line, the
+    new driver's record and the trial in flight left to it."""
+    from sweeper import launcher
+    from sweeper.storage import writer
+
+    monkeypatch.setattr(launcher, "HEARTBEAT_SECONDS", 0.2)
+    url = None if backend == "sqlite" else request.getfixturevalue("pg_url")
+    spec, plan = prepare(str(one_trial_spec(tmp_path, "taken", url)))
+    stream = io.StringIO()
+    codes = []
+    running = threading.Thread(
+        target=lambda: codes.append(launch(spec, plan, train=hold, stream=stream))
+    )
+    running.start()
+    try:
+
+        def reporting():
+            trials = trials_of(spec.storage_url, "taken")
+            return trials and 0 in trials[0].intermediate_values
+
+        wait_until(reporting, 120, "the trial's first report")
+        storage = open_storage(spec.storage_url, create=False)
+        try:
+            store = StudyStore.find(storage, "taken")
+            with store._locked() as connection:  # as a claim writes it
+                writer._write_study_attr(connection, store.study_id, "driver", takeover_record())
+        finally:
+            storage.engine.dispose()
+        running.join(timeout=120)
+    finally:
+        (tmp_path / "release").touch()
+        running.join(timeout=120)
+    assert codes == [3], stream.getvalue()
+    (line,) = [x for x in stream.getvalue().splitlines() if "another" in x]
+    assert line.startswith("sweeper launch: stopped: another `sweeper launch` drives this study")
+    assert "host elsewhere" in line
+    (trial,) = stored_trials(spec.storage_url, "taken")
+    assert trial.state == TrialState.RUNNING  # the new driver's to reap, not this one's
+    study = optuna.load_study(study_name="taken", storage=spec.storage_url)
+    assert study.user_attrs["driver"]["host"] == "elsewhere"  # left alone
+
+
+MIDWAY = """
+import sys, time
+from pathlib import Path
+from agent.config import TrialResult
+from sweeper.launcher import launch, prepare
+
+spec_path, address, stage = sys.argv[1], sys.argv[2], sys.argv[3]
+
+
+def midway(config, report=None):
+    # checkpoints (a marker file) at step 100, reports it, then holds there ("hold") or
+    # runs to the end ("finish"); a re-run resumes from the marker
+    marker = Path(config.checkpoint_dir) / "checkpoint.pt"
+    resumed_from = int(marker.read_text()) if marker.exists() else None
+    report(0, {"success_rate": 0.0, "final_distance": 1.0})
+    if resumed_from is None:
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        marker.write_text("100")
+    report(100, {"success_rate": 0.5, "final_distance": 0.5})
+    deadline = time.monotonic() + 300
+    while stage == "hold" and time.monotonic() < deadline:
+        time.sleep(0.1)
+    steps = (0, 100, 200, 300)
+    metrics = {"success_rate": (0.0, 0.5, 1.0, 1.0), "final_distance": (1.0, 0.5, 0.0, 0.0)}
+    return TrialResult(steps=steps, metrics=metrics, auc=0.5, resumed_from=resumed_from)
+
+
+spec, plan = prepare(spec_path, address=address)
+sys.exit(launch(spec, plan, train=midway))
+"""
+
+
+@pytest.mark.slow
+def test_sigterm_mid_study_interrupts_the_trials_in_flight_and_a_relaunch_resumes_them(
+    tmp_path, local_ray
+):
+    """SIGTERM to the driver (a service manager stopping it) while two trials run past their
+    checkpoint: exit 130, both FAIL as interrupted, one line saying both resume; the next
+    launch resumes each from its checkpoint in a new trial."""
+    spec = write_ci_spec(
+        tmp_path / "spec.yaml",
+        study="sigterm",
+        storage=f"sqlite:///{tmp_path / 'study.db'}",
+        checkpoints=str(tmp_path / "checkpoints"),
+    )
+    keys = prepare(str(spec))[1].keys()
+    url = prepare(str(spec))[0].storage_url
+
+    def driver(stage: str, log: Path) -> subprocess.Popen:
+        return subprocess.Popen(
+            [sys.executable, "-c", MIDWAY, str(spec), local_ray, stage],
+            stdout=log.open("w"),
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            cwd=tmp_path,
+        )
+
+    def both_past_their_checkpoint():
+        trials = trials_of(url, "sigterm")
+        running = [t for t in trials if t.state == TrialState.RUNNING]
+        return len(running) == 2 and all(100 in t.intermediate_values for t in running)
+
+    first = driver("hold", tmp_path / "first.log")
+    try:
+        wait_until(both_past_their_checkpoint, 240, "two trials past their checkpoint")
+        first.send_signal(signal.SIGTERM)  # the driver alone, not its process group
+        assert first.wait(timeout=120) == 130, (tmp_path / "first.log").read_text()
+    finally:
+        kill_group(first, signal.SIGKILL)
+    last = (tmp_path / "first.log").read_text().strip().splitlines()[-3:]
+    assert last[0] == (
+        "sweeper launch: stopped; 2 trial(s) in flight were interrupted; the next launch:"
+    )
+    for line in last[1:]:  # both wrote a checkpoint past step 100
+        assert re.fullmatch(r"  \S+: resumes from step \d+ \(its checkpoint\)", line), line
+        assert int(line.split("step ")[1].split()[0]) >= 100
+    interrupted = stored_trials(url, "sigterm")
+    assert [t.state for t in interrupted] == [TrialState.FAIL] * 2
+    for trial in interrupted:
+        assert trial.user_attrs["outcome"] == "interrupted"
+        assert trial.user_attrs["error"] == "interrupted: stopped by the user"
+
+    second = driver("finish", tmp_path / "second.log")
+    try:
+        assert second.wait(timeout=240) == 0, (tmp_path / "second.log").read_text()
+    finally:
+        kill_group(second, signal.SIGKILL)
+    by_key = check_exact_budget(stored_trials(url, "sigterm"), keys)
+    before = {t.user_attrs["key"]: t.number for t in interrupted}
+    for key, trial in by_key.items():
+        assert trial.user_attrs["supersedes"] == [before[key]]
+        assert trial.user_attrs["resumed_from"] == 100, key  # from its checkpoint
+
+
+def held_at_100(config, report=None):
+    """Checkpoints (a marker file) and reports step 100, then waits for a file ``release``
+    beside the checkpoint root (at most 120 s) and finishes; a re-run resumes from the
+    marker."""
+    marker = Path(config.checkpoint_dir) / "checkpoint.pt"
+    resumed_from = int(marker.read_text()) if marker.exists() else None
+    report(0, {"success_rate": 0.0, "final_distance": 1.0})
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    marker.write_text("100")
+    report(100, {"success_rate": 0.5, "final_distance": 0.5})
+    release = Path(config.checkpoint_dir).parents[3].parent / "release"
+    deadline = time.monotonic() + 120
+    while not release.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    steps = (0, 100, 200, 300)
+    metrics = {"success_rate": (0.0, 0.5, 1.0, 1.0), "final_distance": (1.0, 0.5, 0.0, 0.0)}
+    return TrialResult(steps=steps, metrics=metrics, auc=0.5, resumed_from=resumed_from)
+
+
+@contextlib.contextmanager
+def write_locked(path: Path):
+    """Another process's write lock on the SQLite file ``path`` while the block runs."""
+    connection = sqlite3.connect(path, isolation_level=None)
+    connection.execute("BEGIN IMMEDIATE")
+    try:
+        yield
+    finally:
+        connection.execute("ROLLBACK")
+        connection.close()
+
+
+def past_its_checkpoint(url: str, study: str):
+    """The study's one trial once it is RUNNING and has reported step 100."""
+    trials = trials_of(url, study)
+    running = [t for t in trials if t.state == TrialState.RUNNING]
+    return running and 100 in running[0].intermediate_values and running[0]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_a_database_lost_past_the_grace_stops_the_launch_and_a_relaunch_resumes(
+    tmp_path, local_ray, backend, request, monkeypatch
+):
+    """SQLite locked by another process, PostgreSQL gone (its proxy down), past
+    execution.storage_grace while the driver records a result: exit 2 with one line naming
+    the cause and the fix; the trial stays RUNNING, and the next launch resumes it."""
+    from pg_proxy import Proxy
+
+    from sweeper.storage import urls
+
+    monkeypatch.setattr(urls, "SQLITE_TIMEOUT", 0.2)  # SQLite's own wait on a lock
+    if backend == "sqlite":
+        url = read_url = f"sqlite:///{tmp_path / 'study.db'}"
+        outage = functools.partial(write_locked, tmp_path / "study.db")
+    else:
+        read_url = request.getfixturevalue("pg_url")
+        proxy = Proxy(("127.0.0.1", 5432))
+        url = read_url.replace("127.0.0.1:5432", f"127.0.0.1:{proxy.port}")
+
+        @contextlib.contextmanager
+        def outage():
+            proxy.down()
+            try:
+                yield
+            finally:
+                proxy.up()
+
+    spec, plan = prepare(str(one_trial_spec(tmp_path, "outage", url, storage_grace=2)))
+    stream = io.StringIO()
+    codes = []
+    running = threading.Thread(
+        target=lambda: codes.append(launch(spec, plan, train=held_at_100, stream=stream))
+    )
+    running.start()
+    try:
+        held = wait_until(lambda: past_its_checkpoint(read_url, "outage"), 120, "step 100")
+        with outage():
+            (tmp_path / "release").touch()  # the trial ends: its result meets the outage
+            running.join(timeout=120)
+    finally:
+        (tmp_path / "release").touch()
+        running.join(timeout=120)
+    assert codes == [2], stream.getvalue()
+    (line,) = [x for x in stream.getvalue().splitlines() if "storage_grace" in x]
+    assert line.startswith("sweeper launch: storage: lost ")
+    assert "for over 2 s (execution.storage_grace)" in line
+    assert line.endswith(
+        "bring the database back, then launch again to resume the trials in flight"
+    )
+    (left,) = stored_trials(read_url, "outage")
+    assert left.number == held.number and left.state == TrialState.RUNNING
+
+    assert launch(spec, plan, train=held_at_100, stream=io.StringIO()) == 0
+    trials = stored_trials(read_url, "outage")
+    (resumed,) = check_exact_budget(trials, plan.keys()).values()
+    assert resumed.user_attrs["supersedes"] == [held.number]
+    assert resumed.user_attrs["resumed_from"] == 100
+    assert trials[held.number].user_attrs["error"] == "interrupted: its driver stopped"
+
+
+@pytest.mark.slow
+def test_a_locked_sqlite_database_is_waited_for_within_the_grace(tmp_path, local_ray, monkeypatch):
+    """A lock held by another process while the driver records a result: the write meets
+    "database is locked", is tried again, and lands once the lock is gone; exit 0."""
+    from sweeper.storage import urls
+
+    monkeypatch.setattr(urls, "SQLITE_TIMEOUT", 0.2)
+    spec, plan = prepare(str(one_trial_spec(tmp_path, "locked")))
+    locked = []
+
+    def met(context):  # the driver's own writes, not its heartbeat's (which skips a beat)
+        heartbeat = threading.current_thread().name == "sweeper-heartbeat"
+        if "database is locked" in str(context.original_exception) and not heartbeat:
+            locked.append(context.statement)
+
+    stream = io.StringIO()
+    codes = []
+    running = threading.Thread(
+        target=lambda: codes.append(launch(spec, plan, train=held_at_100, stream=stream))
+    )
+    running.start()
+    sqlalchemy.event.listen(sqlalchemy.engine.Engine, "handle_error", met)
+    try:
+        wait_until(lambda: past_its_checkpoint(spec.storage_url, "locked"), 120, "step 100")
+        with write_locked(tmp_path / "study.db"):
+            (tmp_path / "release").touch()
+            wait_until(lambda: locked, 60, "the driver's write to meet the lock")
+        running.join(timeout=120)
+    finally:
+        sqlalchemy.event.remove(sqlalchemy.engine.Engine, "handle_error", met)
+        (tmp_path / "release").touch()
+        running.join(timeout=120)
+    assert codes == [0], stream.getvalue()
+    (trial,) = check_exact_budget(stored_trials(spec.storage_url, "locked"), plan.keys()).values()
+    assert trial.value == 0.5 and trial.user_attrs["attempts"] == 1
+    assert sorted(trial.intermediate_values) == [0, 100, 200, 300]
