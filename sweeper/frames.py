@@ -15,6 +15,8 @@ import numpy as np
 
 #: pixels between tiles and of the label band above each row
 PAD, LABEL = 6, 16
+#: the smallest side an env view is scaled up to (a whole factor) in ``env_views``
+VIEW_SIZE = 128
 
 
 def labelled(image: np.ndarray, text: str) -> np.ndarray:
@@ -62,9 +64,12 @@ def env_views(
     options: dict[str, Any] | None = None,
     episodes: int = 4,
     seed: int = 0,
+    columns: int = 2,
 ) -> Path:
     """Write ``path``: for ``episodes`` resets of the env, the camera view beside the goal
-    image, each at the env's image size scaled up, labelled."""
+    image, each at the env's image size scaled up by a whole factor to at least
+    ``VIEW_SIZE`` pixels, labelled, ``columns`` pairs to a row (4 resets: a 2 x 2 grid,
+    e.g. 530 x 294 pixels at 32 x 32, 690 x 374 at 84 x 84)."""
     from agent.envs import make_env
 
     env = make_env(env_name, image_size=image_size, **(options or {}))
@@ -73,7 +78,7 @@ def env_views(
         for episode in range(episodes):
             obs, _ = env.reset(seed=seed + episode)
             size = obs["image"].shape[0]
-            scale = max(1, -(-96 // size))
+            scale = max(1, -(-VIEW_SIZE // size))
             pair = side_by_side([
                 obs["image"].repeat(scale, 0).repeat(scale, 1),
                 obs["goal_image"].repeat(scale, 0).repeat(scale, 1),
@@ -81,4 +86,5 @@ def env_views(
             tiles.append(labelled(pair, f"reset {episode}: view | goal"))
     finally:
         env.close()
-    return save_png(side_by_side(tiles), path)
+    rows = [side_by_side(tiles[i : i + columns]) for i in range(0, len(tiles), columns)]
+    return save_png(stacked(rows), path)

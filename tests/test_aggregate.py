@@ -4,6 +4,7 @@ against the storage (a synthetic study with every trial fate, and the CI study).
 from __future__ import annotations
 
 import argparse
+import json
 import math
 from pathlib import Path
 
@@ -206,6 +207,10 @@ def test_note_section_is_replaced_not_repeated():
     assert first == f"mine\n\n{section}"
     again = replace_note_section(first + "\nafter", f"{NOTE_BEGIN}\nnewer\n{NOTE_END}")
     assert again == f"mine\n\n{NOTE_BEGIN}\nnewer\n{NOTE_END}\nafter"
+    # a section written with the HTML-comment markers of before is replaced too
+    old = "mine\n\n<!-- sweeper aggregate: begin (rewritten by every run) -->\nold\n"
+    old += "<!-- sweeper aggregate: end -->\nafter"
+    assert replace_note_section(old, section) == f"mine\n\n{section}\nafter"
 
 
 def test_unknown_empty_or_missing_study_is_a_clear_error(synthetic, tmp_path, capsys):
@@ -419,3 +424,92 @@ def test_the_dashboard_trial_panel_spreads_a_large_method_over_its_auc_ranks():
     assert shown["trial"].iloc[0] == 99 and shown["trial"].iloc[-1] == 100  # best; no AUC
     gaps = np.diff(shown["trial"].iloc[:-1].to_numpy())
     assert gaps.max() - gaps.min() <= 1  # evenly spread over the ranks
+
+
+# ---- the report and the dashboard as a reader meets them (issue 22) ----------------------
+def test_best_trial_ties_go_to_the_lower_trial_number_everywhere(synthetic):
+    from sweeper.aggregate.frame import scored, trial_rows
+    from sweeper.aggregate.pictures import best_and_median
+
+    url, _ = synthetic
+    frame = load_study_frame(url, "syn")
+    done = trial_rows(scored(frame))
+    pixel = done[done["method"] == "pixel"]
+    tied = pixel["trial"].tolist()[:3]
+    frame.loc[frame["trial"].isin(tied), "auc"] = 1.0  # three trials share the best AUC
+    table = auc_table(frame, driver_alive=False).set_index("method")
+    best, _ = best_and_median(trial_rows(scored(frame)).query("method == 'pixel'"))
+    assert table.loc["pixel", "best_trial"] == min(tied) == best[1]["trial"]
+
+
+def test_curve_bands_are_clipped_and_the_random_agent_is_drawn(tmp_path):
+    from sweeper.aggregate.dashboard import save_to_dashboard
+    from sweeper.aggregate.figures import clip_band
+    from sweeper.aggregate.tables import study_tables
+
+    low, high = clip_band("success_rate", np.array([-0.2, 0.5]), np.array([0.7, 1.3]))
+    assert low.tolist() == [0.0, 0.5] and high.tolist() == [0.7, 1.0]
+    low, high = clip_band("final_hand_distance", np.array([-0.1]), np.array([0.4]))
+    assert low.tolist() == [0.0] and high.tolist() == [0.4]
+
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    write_synthetic_study(url, "rnd", methods=METHODS, configs=4, seeds=(0, 1), random_success=0.2)
+    frame = load_study_frame(url, "rnd")
+    tables = study_tables(frame, driver_alive=False)
+    out = tmp_path / "out"
+    result = aggregate(url, "rnd", out, dashboard=False, progress=lambda m: None)
+    assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in result.files)
+    storage = optuna.storages.get_storage(url)
+    save_to_dashboard(storage, frame, tables)
+    from optuna_dashboard._custom_plot_data import get_plotly_graph_objects
+
+    study_id = storage.get_study_id_from_name("rnd")
+    figures = get_plotly_graph_objects(storage.get_study_system_attrs(study_id))
+    success = json.loads(figures["sweeper-curves-success_rate"])["data"]
+    random = [t for t in success if t["name"].startswith("random agent")]
+    assert len(random) == 1 and random[0]["y"] == [0.2, 0.2]
+    for metric in study_info(frame).metrics:
+        data = json.loads(figures[f"sweeper-curves-{metric}"])["data"]
+        for trace in data:
+            if trace.get("fill"):  # a band: no markers, inside the metric's range
+                assert trace["mode"] == "lines"
+                values = np.array(trace["y"], dtype=float)
+                assert values.min() >= 0.0
+                if metric.endswith("_rate"):
+                    assert values.max() <= 1.0
+    report = (out / "report.md").read_text()
+    assert "a random agent succeeds in 0.20 of episodes" in report
+
+
+def test_the_report_explains_its_ranking_from_its_own_tables(synthetic):
+    from sweeper.aggregate.report import ranking_sentence
+
+    url, out = synthetic
+    table = pd.read_csv(out / "auc_table.csv")
+    improvement = pd.read_csv(out / "improvement.csv")
+    sentence = ranking_sentence(table, improvement)
+    ranked = table.sort_values("iqm", ascending=False)
+    listed = ", ".join(
+        f"{r.method} {r.iqm:.2f} [{r.iqm_low:.2f}, {r.iqm_high:.2f}]" for r in ranked.itertuples()
+    )
+    assert sentence.startswith(f"Ranked by IQM AUC (95% CI): {listed}; ")
+    first, second = ranked["method"].iloc[:2]
+    p = improvement.set_index(["method", "versus"]).loc[(first, second)]
+    clear = "clearly ahead" if p["low"] > 0.5 else "not clearly ahead"
+    assert f"{first} is {clear} of {second} (wins {p['probability']:.2f} " in sentence
+    assert sentence.count(".") >= 1 and sentence.endswith(".")
+    report = (out / "report.md").read_text()
+    assert sentence in report.split("## AUC per method")[0]  # before the tables
+    note = get_note(optuna.load_study(study_name="syn", storage=url))
+    assert sentence in note and "```text" in note and "P(improvement)" in note
+    assert "<!--" not in note  # optuna-dashboard would show an HTML comment as text
+
+
+def test_aggregate_says_how_many_files_it_wrote(ci_study, ci_aggregate, tmp_path, capsys):
+    out = tmp_path / "out"
+    command = ["aggregate", str(ci_study.spec), "--storage", ci_study.storage_url]
+    assert cli.main([*command, "--out", str(out), "--no-dashboard"]) == 0
+    printed = capsys.readouterr().out
+    written = sorted(p.name for p in out.iterdir())
+    assert {"final_frames.png", "env_views.png", "report.md"} <= set(written)
+    assert printed.startswith(f"wrote {len(written)} files to {out}")

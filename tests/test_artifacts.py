@@ -199,4 +199,5 @@ def test_report_shows_final_frames_of_each_method_and_the_env_view(ci_study, ci_
     assert strip.shape == (2 * (16 + 160) + 6, 2 * 272 + 6, 3)
     assert "## What the encoders see" in report and "](env_views.png)" in report
     views = np.asarray(Image.open(ci_aggregate / "env_views.png").convert("RGB"))
-    assert views.shape == (16 + 96, 4 * (2 * 96 + 6) + 3 * 6, 3)  # 4 resets: view | goal
+    # 4 resets in a 2 x 2 grid, each view | goal scaled from 32 to 128 pixels
+    assert views.shape == (2 * (16 + 128) + 6, 2 * (2 * 128 + 6) + 6, 3)

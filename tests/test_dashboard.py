@@ -73,7 +73,34 @@ def test_dashboard_shows_trials_curves_and_the_comparison(ci_study, ci_aggregate
         assert points == pytest.approx(trial.intermediate_values)
         number = trial.number
         link = f"/dashboard/studies/{study_id}/trials?numbers={number}"
-        assert f"- **{trial.user_attrs['method']}**: trials {number} ([open]({link}))" in note
+        shown = f"[show them side by side]({link})"
+        assert f"- **{trial.user_attrs['method']}**: trials {number} ({shown})" in note
+
+
+def test_dashboard_importance_and_params_show_what_varies_and_the_method(ci_study, ci_aggregate):
+    """Constant hyperparameters are no trial params (they are in the study attr
+    fixed_params), so the importance and the trial table show what varies, method among it."""
+    with running_dashboard(ci_study) as page:
+        base, study_id = page.split("/dashboard/")[0], page.rsplit("/", 1)[1]
+        detail = get_json(f"{base}/api/studies/{study_id}")
+        importances = get_json(f"{base}/api/studies/{study_id}/param_importances")
+    assert {p["name"] for p in detail["union_search_space"]} == {"lr", "method"}
+    method = next(p for p in detail["union_search_space"] if p["name"] == "method")
+    assert [c["value"] for c in method["distribution"]["choices"]] == ["linear", "pixel"]
+    shown = {i["name"] for i in importances["param_importances"][0]}
+    assert shown == {"lr", "method"}
+    attrs = {a["key"]: json.loads(a["value"]) for a in detail["user_attrs"]
+             if a["key"] == "fixed_params"}  # fmt: skip
+    assert attrs["fixed_params"]["hidden_sizes"] == "64x64"
+    assert attrs["fixed_params"]["linear.latent_dim"] == 16
+    figures = {g["id"]: json.loads(g["graph_object"]) for g in detail["plotly_graph_objects"]}
+    table = figures["sweeper-comparison"]["data"][0]
+    assert table["type"] == "table" and "<b>pixel</b>" in json.dumps(table["cells"])
+    for name in ("sweeper-curves-success_rate", "sweeper-curves-final_distance"):
+        for trace in figures[name]["data"]:  # every trace says how it is drawn
+            assert "mode" in trace, name
+            if trace.get("fill"):  # a band: its fill only, no markers
+                assert trace["mode"] == "lines", name
 
 
 def test_dashboard_bad_input_exits_2(ci_study, tmp_path, capsys):

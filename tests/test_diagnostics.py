@@ -315,9 +315,10 @@ def test_cli_writes_its_files(tmp_path, capsys) -> None:
     assert (summary.loc[drawn, "start"] == "reset").all()
     assert summary.loc[~drawn, "start"].isna().all()  # the other analyses draw no pairs
     assert "min_goal_distance" not in set(summary["metric"])
-    # what the encoders see: 4 resets, each the 32-pixel view and goal scaled to 96, labelled
+    # what the encoders see: 4 resets in a 2 x 2 grid, each the 32-pixel view and goal
+    # scaled to 128, labelled
     views = np.asarray(Image.open(out / "views.png").convert("RGB"))
-    assert views.shape == (16 + 96, 4 * (2 * 96 + 6) + 3 * 6, 3)
+    assert views.shape == (2 * (16 + 128) + 6, 2 * (2 * 128 + 6) + 6, 3)
 
 
 def test_cli_start_and_min_goal_distance_are_recorded(tmp_path) -> None:

@@ -243,7 +243,9 @@ def aggregate(
             seeds = len(study_info(frame).attrs["confirm"]["seeds"])
             text += "\n" + confirm_markdown(confirm, seeds)
         if artifacts is not None:  # final frames per method, the env's view
-            text += report_pictures(search, store.storage, artifacts, out)
+            pictures, written = report_pictures(search, store.storage, artifacts, out)
+            text += pictures
+            figures += written
     report = out / "report.md"
     report.write_text(text, encoding="utf-8")
     if dashboard:

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 
 from agent.config import Outcome
-from sweeper.aggregate.frame import methods_of, scored, study_info, trial_rows
+from sweeper.aggregate.frame import methods_of, random_success, scored, study_info, trial_rows
 from sweeper.aggregate.tables import CONFIDENCE, Tables
 
 #: trials per panel above which lines are drawn without antialiasing (25 % faster)
@@ -32,8 +32,9 @@ def metric_label(metric: str, env: str | None = None) -> str:
 def draw_figures(frame: pd.DataFrame, tables: Tables, out: Path) -> list[Path]:
     """Write the PNG figures; return their paths."""
     title = study_info(frame).name
+    random = random_success(frame)
     return [
-        draw_efficiency(tables.efficiency, out / "efficiency.png", title, env_of(frame)),
+        draw_efficiency(tables.efficiency, out / "efficiency.png", title, env_of(frame), random),
         draw_profiles(tables.profiles, out / "profiles.png", title),
         _draw_mean_curves(frame, tables.curves, out / "curves.png"),
         _draw_trial_curves(frame, out / "trials.png"),
@@ -45,21 +46,64 @@ def _method_colours(methods: list[str]) -> dict[str, str]:
     return {m: f"C{i % 10}" for i, m in enumerate(methods)}
 
 
+#: a line style per method (cycled), so methods whose curves coincide stay apart
+LINE_STYLES = ("solid", (0, (5, 2)), (0, (1, 1.5)), (0, (5, 2, 1, 2)))
+#: the same dashes for plotly (the dashboard's figures)
+PLOTLY_DASHES = ("solid", "dash", "dot", "dashdot")
+
+
+def line_style(index: int) -> Any:
+    """The matplotlib line style of the ``index``-th method."""
+    return LINE_STYLES[(index // 10 + index) % len(LINE_STYLES)]
+
+
+def line_width(index: int, count: int) -> float:
+    """Wider for the earlier methods, so a later line on top of an earlier one (two methods
+    with the same profile) leaves the earlier one showing at its edges."""
+    return 1.2 + 1.8 * (count - 1 - index) / max(count - 1, 1)
+
+
+def clip_band(metric: str, low: Any, high: Any) -> tuple[Any, Any]:
+    """A ± band clipped to the metric's range: rates to [0, 1], distances below at 0."""
+    if metric.endswith("_rate"):
+        return np.clip(low, 0.0, 1.0), np.clip(high, 0.0, 1.0)
+    if "distance" in metric:
+        return np.maximum(low, 0.0), high
+    return low, high
+
+
+def random_label(success: float) -> str:
+    """The legend entry of the random agent's line."""
+    return f"random agent ({success:.2f})"
+
+
+def _draw_random(axes: Any, success: float | None) -> None:
+    """The random agent's measured success rate as a grey dotted line across ``axes``."""
+    if success is not None:
+        axes.axhline(success, color="0.35", ls=":", lw=1.2, label=random_label(success))
+
+
 def draw_efficiency(
-    efficiency: pd.DataFrame, path: Path, title: str, env: str | None = None
+    efficiency: pd.DataFrame,
+    path: Path,
+    title: str,
+    env: str | None = None,
+    random: float | None = None,
 ) -> Path:
-    """Sample-efficiency curves: per method the IQM of the success rate with its band."""
+    """Sample-efficiency curves: per method the IQM of the success rate with its band;
+    ``random``: the random agent's success rate, drawn as a line."""
     from matplotlib.figure import Figure
 
     figure = Figure(figsize=(7.5, 4.8), layout="constrained")
     axes = figure.add_subplot()
     methods = list(dict.fromkeys(efficiency["method"]))
-    for method, colour in _method_colours(methods).items():
+    for index, (method, colour) in enumerate(_method_colours(methods).items()):
         part = efficiency[efficiency["method"] == method]
         steps = part["step"].to_numpy(dtype=float)
         label = f"{method} (n = {int(part['n'].max())})"
-        axes.plot(steps, part["iqm"], color=colour, label=label)
+        axes.plot(steps, part["iqm"], color=colour, ls=line_style(index), label=label)
         axes.fill_between(steps, part["low"], part["high"], color=colour, alpha=0.2, lw=0)
+    _draw_random(axes, random)
     if methods:
         axes.legend(title="method (done trials)", fontsize="small")
     else:
@@ -86,12 +130,19 @@ def draw_profiles(
     methods = list(dict.fromkeys(profiles["method"]))
     colours = _method_colours(methods)
     for axes, (score, label) in zip(grid, labels.items(), strict=True):
-        for method in methods:
+        for index, method in enumerate(methods):
             part = profiles[(profiles["method"] == method) & (profiles["score"] == score)]
             if part.empty:
                 continue
             n = int(part["n"].max())
-            axes.plot(part["tau"], part["fraction"], color=colours[method], label=f"{method} ({n})")
+            axes.plot(
+                part["tau"],
+                part["fraction"],
+                color=colours[method],
+                ls=line_style(index),
+                lw=line_width(index, len(methods)),
+                label=f"{method} ({n})",
+            )
             axes.fill_between(
                 part["tau"], part["low"], part["high"], color=colours[method], alpha=0.2, lw=0
             )
@@ -161,8 +212,11 @@ def _draw_mean_curves(frame, curves, path: Path) -> Path:
             mean, std = part["mean"].to_numpy(), part["std"].fillna(0).to_numpy()
             colour = f"C{index % 10}"
             label = f"{method} (n = {int(part['n'].max())})"
-            axes.plot(steps, mean, color=colour, label=label)
-            axes.fill_between(steps, mean - std, mean + std, color=colour, alpha=0.2, lw=0)
+            axes.plot(steps, mean, color=colour, ls=line_style(index), label=label)
+            low, high = clip_band(metric, mean - std, mean + std)
+            axes.fill_between(steps, low, high, color=colour, alpha=0.2, lw=0)
+        if metric == "success_rate":
+            _draw_random(axes, random_success(frame))
         axes.set_title(metric.replace("_", " "))
         _style_axes(axes, metric, env_of(frame))
     handles, labels = grid[0, 0].get_legend_handles_labels()

@@ -198,3 +198,18 @@ def methods_of(frame: pd.DataFrame) -> list[str]:
     declared = list((study.get("spec") or {}).get("methods", {}))
     declared += [k.split("/")[0] for k in study.get("plan", [])]
     return list(dict.fromkeys(declared + frame["method"].dropna().unique().tolist()))
+
+
+def by_auc(trials: pd.DataFrame) -> pd.DataFrame:
+    """Trial rows best first: highest AUC first, ties to the lower trial number, trials
+    without an AUC last. Every "best trial" of the report and the dashboard is the first
+    row of this order, so a tie is broken the same way everywhere."""
+    return trials.sort_values(
+        ["auc", "trial"], ascending=[False, True], na_position="last", kind="stable"
+    )
+
+
+def random_success(frame: pd.DataFrame) -> float | None:
+    """The random agent's measured success rate (study attr ``random_agent``), or None."""
+    value = (study_info(frame).attrs.get("random_agent") or {}).get("success_rate")
+    return None if value is None else float(value)

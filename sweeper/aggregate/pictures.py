@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import pandas as pd
 
-from sweeper.aggregate.frame import methods_of, scored, study_info, trial_rows
+from sweeper.aggregate.frame import by_auc, methods_of, scored, study_info, trial_rows
 from sweeper.frames import env_views, labelled, save_png, side_by_side, stacked
 
 if TYPE_CHECKING:
@@ -40,17 +40,18 @@ def last_video(videos: dict[str, str] | None) -> tuple[str, str, int] | None:
 
 
 def best_and_median(scored_trials: pd.DataFrame) -> list[tuple[str, Any]]:
-    """[("best", row), ("median", row)] of one method's scored trials (one row each): the
-    highest AUC and the lower median AUC (the same trial when there is one)."""
-    ordered = scored_trials.sort_values(["auc", "trial"], ascending=[True, True])
-    return [("best", ordered.iloc[-1]), ("median", ordered.iloc[(len(ordered) - 1) // 2])]
+    """[("best", row), ("median", row)] of one method's scored trials (one row each), in
+    ``by_auc``'s order (the AUC table's best trial): the first and the lower median (the
+    same trial when there is one)."""
+    ordered = by_auc(scored_trials)
+    return [("best", ordered.iloc[0]), ("median", ordered.iloc[len(ordered) // 2])]
 
 
 def final_frames(
     frame: pd.DataFrame, storage: optuna.storages.BaseStorage, artifacts: str, out: Path
 ) -> str:
-    """Write ``final_frames.png`` into ``out``; return the report section (empty when no
-    trial has a video, e.g. ``videos: none``)."""
+    """Write ``final_frames.png`` into ``out``; return the report section (empty, and no
+    file written, when no trial has a video, e.g. ``videos: none``)."""
     from agent.video import decode_video
     from sweeper.artifacts import ArtifactStore
 
@@ -104,14 +105,16 @@ def final_frames(
 
 def report_pictures(
     frame: pd.DataFrame, storage: optuna.storages.BaseStorage, artifacts: str, out: Path
-) -> str:
-    """The report's picture sections (``sweeper aggregate``): the final frames of each
-    method's best and median trial, and the env's camera view and goal images (skipped
-    with a line saying why when the env cannot be built here, e.g. no MuJoCo)."""
+) -> tuple[str, list[Path]]:
+    """The report's picture sections (``sweeper aggregate``) and the files written: the
+    final frames of each method's best and median trial, and the env's camera view and goal
+    images (skipped with a line saying why when the env cannot be built here, e.g. no
+    MuJoCo)."""
     text = final_frames(frame, storage, artifacts, out)
+    files = [out / "final_frames.png"] if text else []
     env = (study_info(frame).attrs.get("spec") or {}).get("env") or {}
     if not env.get("name"):
-        return text
+        return text, files
     try:
         env_views(
             env["name"],
@@ -120,8 +123,9 @@ def report_pictures(
             options=env.get("options"),
         )
     except Exception as e:  # a report without the picture beats no report
-        return text + f"\n(no camera view: env {env['name']!r} cannot be built here: {e})\n"
-    return text + _env_views_section(env["name"])
+        why = f"\n(no camera view: env {env['name']!r} cannot be built here: {e})\n"
+        return text + why, files
+    return text + _env_views_section(env["name"]), [*files, out / "env_views.png"]
 
 
 def _env_views_section(env_name: str) -> str:

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from typing import Any
 
 import pandas as pd
 
-from sweeper.aggregate.frame import study_info, trial_rows
+from sweeper.aggregate.frame import random_success, study_info, trial_rows
 from sweeper.aggregate.tables import CONFIDENCE, RESAMPLES, Tables
 
 
@@ -42,9 +43,10 @@ def few_trials_warning(table: pd.DataFrame) -> str:
     )
 
 
-def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame) -> str:
+def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame, pairs: bool = False) -> str:
     """The AUC table (ledger, every statistic with its interval, compute, best trial) and
-    the probability-of-improvement matrix with intervals, as Markdown."""
+    the probability-of-improvement matrix with intervals, as Markdown; with ``pairs``, the
+    probabilities as a row per pair of methods instead (``improvement_pairs_markdown``)."""
     lines = [
         "| method | planned | done | diverged | running | failed | left "
         f"| IQM AUC [{CONFIDENCE:.0%} CI] | mean [CI] | median [CI] | optimality gap [CI] | std "
@@ -74,7 +76,17 @@ def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame) -> str:
     if warning := few_trials_warning(table):
         lines += ["", warning]
     methods = table["method"].tolist()
-    if len(methods) > 1:
+    if pairs and (rows := improvement_pairs_markdown(table, improvement)):
+        lines += [
+            "",
+            "Probability of improvement P(method > over), paired by SAC configuration and seed, "
+            f"with its {CONFIDENCE:.0%} CI, the better-ranked method first:",
+            "",
+            rows,
+        ]
+        if "*\n" in rows:
+            lines += ["", f"\\* fewer than {MIN_RELIABLE} pairs: not reliable."]
+    elif len(methods) > 1 and not pairs:
         lookup = {(r.method, r.versus): r for r in improvement.itertuples()}
         lines += [
             "",
@@ -106,6 +118,70 @@ def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame) -> str:
                 "not reliable.",
             ]
     return "\n".join(lines)
+
+
+def ranking_sentence(
+    table: pd.DataFrame, improvement: pd.DataFrame, random: float | None = None
+) -> str:
+    """The ranking in one sentence, from the tables' own evidence: the methods by IQM AUC
+    with their intervals, and for each method over the next one the paired probability of
+    improvement (the share of paired trials it beats the next one in) with its interval,
+    called a clear lead only when that interval lies above 0.5."""
+    done = table[table["n"] > 0].sort_values("iqm", ascending=False, kind="stable")
+    if done.empty:
+        return "No method has a done trial yet, so there is no ranking."
+    ranked = list(done.itertuples())
+    order = ", ".join(
+        f"{r.method} {_fmt(r.iqm, 2)} [{_fmt(r.iqm_low, 2)}, {_fmt(r.iqm_high, 2)}]" for r in ranked
+    )
+    text = f"Ranked by IQM AUC ({CONFIDENCE:.0%} CI): {order}"
+    lookup = {(r.method, r.versus): r for r in improvement.itertuples()}
+    claims = []
+    for better, worse in itertools.pairwise(ranked):
+        r = lookup.get((better.method, worse.method))
+        if r is None or not r.pairs or math.isnan(r.probability):
+            claims.append(f"{better.method} and {worse.method} share no done pair")
+            continue
+        pairs = f"{r.pairs} paired trial{'s' if r.pairs > 1 else ''}"
+        evidence = f"{_fmt(r.probability, 2)} [{_fmt(r.low, 2)}, {_fmt(r.high, 2)}] of {pairs}"
+        if r.pairs < MIN_RELIABLE:
+            evidence += f", fewer than {MIN_RELIABLE}"
+        if r.low > 0.5:
+            claims.append(f"{better.method} is clearly ahead of {worse.method} (wins {evidence})")
+        else:
+            claims.append(
+                f"{better.method} is not clearly ahead of {worse.method} (wins {evidence}: "
+                "the interval reaches 0.5)"
+            )
+    if claims:
+        text += "; " + "; ".join(claims)
+    if random is not None:
+        text += f"; a random agent succeeds in {_fmt(random, 2)} of episodes"
+    return text + "."
+
+
+def improvement_pairs_markdown(table: pd.DataFrame, improvement: pd.DataFrame) -> str:
+    """The probability of improvement as one line per pair of methods, the better-ranked
+    (by IQM AUC) first, in a fixed-width block: readable where the matrix is too wide and
+    a Markdown table's cells run together (optuna-dashboard's note). "" when no pair."""
+    done = table[table["n"] > 0].sort_values("iqm", ascending=False, kind="stable")
+    methods = done["method"].tolist()
+    lookup = {(r.method, r.versus): r for r in improvement.itertuples()}
+    rows = [("method", "over", "P(improvement)", f"{CONFIDENCE:.0%} CI", "pairs")]
+    for i, x in enumerate(methods):
+        for y in methods[i + 1 :]:
+            r = lookup.get((x, y))
+            if r is None or not r.pairs:
+                continue
+            mark = "*" if r.pairs < MIN_RELIABLE else ""
+            interval = f"[{_fmt(r.low, 2)}, {_fmt(r.high, 2)}]"
+            rows.append((x, y, _fmt(r.probability, 2), interval, f"{r.pairs}{mark}"))
+    if len(rows) == 1:
+        return ""
+    widths = [max(len(row[c]) for row in rows) for c in range(len(rows[0]))]
+    text = ["   ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip()
+            for row in rows]  # fmt: skip
+    return "\n".join(["```text", *text, "```"])
 
 
 DEFINITIONS = f"""\
@@ -145,6 +221,8 @@ def report_markdown(frame: pd.DataFrame, tables: Tables, driver_alive: bool) -> 
     warning = few_trials_warning(table)
     small = [warning, ""] if warning else []  # repeated beside the figures it concerns
     lines += [
+        ranking_sentence(table, tables.improvement, random_success(frame)),
+        "",
         "## AUC per method",
         "",
         table_markdown(table, tables.improvement),
@@ -157,7 +235,12 @@ def report_markdown(frame: pd.DataFrame, tables: Tables, driver_alive: bool) -> 
         "## Sample efficiency",
         "",
         f"IQM of the success rate at each evaluation step over the done trials, with "
-        f"{CONFIDENCE:.0%} bootstrap bands (whole curves resampled):",
+        f"{CONFIDENCE:.0%} bootstrap bands (whole curves resampled)"
+        + (
+            "; the grey dotted line is a random agent's success rate, measured by the driver:"
+            if random_success(frame) is not None
+            else ":"
+        ),
         "",
         "![IQM success rate per method](efficiency.png)",
         "",

@@ -10,7 +10,14 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from sweeper.aggregate.frame import methods_of, scored, stage_frame, study_info, trial_rows
+from sweeper.aggregate.frame import (
+    by_auc,
+    methods_of,
+    scored,
+    stage_frame,
+    study_info,
+    trial_rows,
+)
 from sweeper.plan import confirm_key
 from sweeper.stats import (
     SUMMARIES,
@@ -84,7 +91,8 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
     (ddof=1), and ``sweeper.stats.SUMMARIES`` (mean, median, iqm, optimality_gap) each with
     ``<name>_low``/``<name>_high`` (95 % stratified bootstrap, ``RESAMPLES`` resamples
     seeded by ``seed``, one resample shared by the four); compute (``compute_columns``); and
-    the best trial (number, key, AUC, searched hyperparameters as ``name=value`` pairs).
+    the best trial (number, key, AUC, searched hyperparameters as ``name=value`` pairs;
+    ``sweeper.aggregate.frame.by_auc``: ties go to the lower trial number).
     """
     trials = trial_rows(frame)
     current = trials[trials["counted"]]
@@ -105,7 +113,7 @@ def auc_table(frame: pd.DataFrame, *, driver_alive: bool = True, seed: int = 0) 
         values = samples.get(method, np.array([]))
         row.update(dict.fromkeys(AUC_COLUMNS), n=values.size)
         if values.size:
-            best = done[done["method"] == method].sort_values("auc", ascending=False).iloc[0]
+            best = by_auc(done[done["method"] == method]).iloc[0]
             params = {k: best[f"params_{k}"] for k in study_info(frame).searched}
             for index, name in enumerate(SUMMARIES):
                 point, low, high = (float(v[index]) for v in intervals[method])
