@@ -52,6 +52,9 @@ class SACConfig(Hyperparameters):
     image_pad: int = hparam(4, ge=0)  # DrQ augmentation: replicate-pad then random crop back
 
 
+#: env steps per episode, in every env (episodes truncate there and never terminate)
+EPISODE_STEPS = 50
+
 #: methods that train on the env's true reward instead of an encoder's: the state oracle
 #: (SAC on true states and goals: the learner's ceiling) and the image-observation control
 #: (images in, true reward: can the agent learn from pixels here, whatever the reward?)
@@ -68,7 +71,10 @@ class TrialConfig:
     distance (under the method's own reward) between a random policy's frames and their
     goals, measured before training, so every method's reward is about 1 in size.
     Checkpoints are written at the first episode end at least ``checkpoint_every`` env
-    steps after the previous one.
+    steps after the previous one. ``stop_at`` (successive halving's rungs): pause at the
+    first episode end from that env step on, with a checkpoint, and return
+    ``Outcome.PAUSED``; run again with a later ``stop_at`` (or None: to the end), the
+    trial goes on from there.
     """
 
     env: str = "point_reach"
@@ -91,6 +97,7 @@ class TrialConfig:
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     # evaluation steps whose first episode is filmed and handed to ``train``'s ``record``
     video_steps: tuple[int, ...] = ()
+    stop_at: int | None = None
 
     def __post_init__(self) -> None:
         _check(isinstance(self.sac, SACConfig), "sac", "a SACConfig", self.sac)
@@ -119,6 +126,13 @@ class TrialConfig:
             "'auto', 'cpu', 'cuda' or 'cuda:N'",
             self.device,
         )
+        stop = self.stop_at
+        _check(
+            stop is None or (_is_int(stop) and 0 < stop < self.total_steps),
+            "stop_at",
+            f"None or an env step in (0, total_steps={self.total_steps})",
+            stop,
+        )
         steps = self.video_steps
         _check(
             isinstance(steps, tuple | list)
@@ -145,17 +159,21 @@ RUNTIME_FIELDS = (
     "checkpoint_every",
     "checkpoint_owner",
     "video_steps",
+    "stop_at",
 )
 
 
 class Outcome(StrEnum):
     """How a trial ended; stored by value as the trial's ``outcome`` user attr. A trial
-    returns COMPLETED or DIVERGED; the driver records FAILED and INTERRUPTED."""
+    returns COMPLETED, DIVERGED or PAUSED (at ``stop_at``); the driver records FAILED,
+    INTERRUPTED and PRUNED (stopped at a rung of successive halving)."""
 
     COMPLETED = "completed"
     DIVERGED = "diverged"
     FAILED = "failed"
     INTERRUPTED = "interrupted"
+    PAUSED = "paused"
+    PRUNED = "pruned"
 
 
 @dataclass(frozen=True)

@@ -268,6 +268,7 @@ class _Trial:
         self.curve: dict[str, list[float]] = {"step": []}
         self.step = 0
         self.resumed_from: int | None = None
+        self.checkpointed_at: int | None = None  # the step of the last checkpoint written or read
         self.seconds_before = 0.0  # wall time of the runs before the resumed checkpoint
         self.video_seconds = 0.0
 
@@ -282,6 +283,8 @@ class _Trial:
         done, diverged = True, None
         try:
             while self.step < config.total_steps:
+                if done and config.stop_at is not None and self.step >= config.stop_at:
+                    return self.pause()
                 if done:
                     obs, goal_latent = self.start_episode()
                 if self.step < config.seed_steps:
@@ -308,6 +311,13 @@ class _Trial:
             diverged = exc
             self.fill_diverged()
         return self.result(diverged)
+
+    def pause(self) -> TrialResult:
+        """Stop at an episode end at or past ``stop_at``: checkpoint (unless the checkpoint
+        already written is this step's) and return the curve so far, ``Outcome.PAUSED``."""
+        if self.config.checkpoint_dir and self.checkpointed_at != self.step:
+            self.save_checkpoint()
+        return self.result(None, paused=True)
 
     def start_episode(self) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
         """Reset the training env: its first observation and the goal's latent (None
@@ -362,6 +372,7 @@ class _Trial:
         return self.seconds_before + time.perf_counter() - self.start
 
     def save_checkpoint(self) -> None:
+        self.checkpointed_at = self.step
         checkpoint.save(
             self.config.checkpoint_dir,
             self.config,
@@ -387,7 +398,7 @@ class _Trial:
         saved = checkpoint.load(self.config.checkpoint_dir, self.config)
         if saved is None:
             return
-        self.step = self.resumed_from = saved.step
+        self.step = self.resumed_from = self.checkpointed_at = saved.step
         self.seconds_before = saved.seconds
         self.video_seconds = saved.video_seconds
         self.agent.load_state_dict(saved.agent)
@@ -401,13 +412,14 @@ class _Trial:
             point = {k: float(v[i]) for k, v in saved.curve.items() if k != "step"}
             self.add_point(int(step), point)
 
-    def result(self, diverged: Diverged | None) -> TrialResult:
+    def result(self, diverged: Diverged | None, paused: bool = False) -> TrialResult:
         metrics = {k: tuple(v) for k, v in self.curve.items() if k != "step"}
+        outcome = Outcome.PAUSED if paused else Outcome.DIVERGED if diverged else Outcome.COMPLETED
         return TrialResult(
             steps=tuple(self.curve["step"]),
             metrics=metrics,
             auc=normalized_auc(self.curve["step"], metrics["success_rate"]),
-            outcome=Outcome.DIVERGED if diverged else Outcome.COMPLETED,
+            outcome=outcome,
             diverged_step=diverged.step if diverged else None,
             diverged_loss=diverged.loss if diverged else None,
             seconds=self.seconds(),

@@ -38,6 +38,21 @@ DEFAULT_KEEP = 1 / 3
 DEFAULT_RUNG_FRACTIONS = (1 / 9, 1 / 3)
 
 
+@dataclass(frozen=True)
+class Schedule:
+    """A study's halving: ``stops`` (the rungs, then the full budget), ``sizes[r]`` the
+    configurations of each method that run to ``stops[r]``, and the promotion ``rule``."""
+
+    stops: tuple[int, ...]
+    sizes: tuple[int, ...]
+    keep: float
+    rule: Rule
+
+    @property
+    def rungs(self) -> tuple[int, ...]:
+        return self.stops[:-1]
+
+
 def rung_sizes(configs: int, rungs: int, keep: float) -> tuple[int, ...]:
     """How many configurations run to each of ``rungs`` stops (the last is the full
     budget): ``configs`` at the first, then ``ceil(keep * previous)``, at least 1."""

@@ -18,8 +18,10 @@ import dataclasses
 import hashlib
 import json
 from dataclasses import dataclass
+from typing import Any
 
 from agent.config import RUNTIME_FIELDS, SACConfig, TrialConfig
+from sweeper.halving import Schedule, rung_sizes
 from sweeper.space import derive_rng, param_value, sample_configs
 from sweeper.spec import StudySpec
 
@@ -45,10 +47,12 @@ class PlanEntry:
 
 @dataclass(frozen=True)
 class Plan:
-    """The entries sorted by (method, config_id, seed), and the plan's sha256 ``hash``."""
+    """The entries sorted by (method, config_id, seed), the plan's sha256 ``hash``, and
+    its successive halving ``schedule`` (None: every trial runs the full budget)."""
 
     entries: tuple[PlanEntry, ...]
     hash: str
+    schedule: Schedule | None = None
 
     def keys(self) -> list[str]:
         """The entries' keys ``"{method}/{config_id}/{seed}"``, in plan order."""
@@ -123,7 +127,14 @@ def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
         }
         for method, config_id, seed, params, _, config in drafts
     ]
-    text = json.dumps({"version": 1, "entries": canonical}, sort_keys=True, separators=(",", ":"))
+    document: dict[str, Any] = {"version": 1, "entries": canonical}
+    schedule = None
+    if spec.halving is not None:  # only then: a spec without it keeps its hash
+        stops = (*spec.rungs, spec.budget.env_steps)
+        sizes = rung_sizes(spec.trials_per_method, len(stops), spec.halving.keep)
+        schedule = Schedule(stops, sizes, spec.halving.keep, spec.halving.rule)
+        document["halving"] = {"stops": stops, "keep": schedule.keep, "rule": schedule.rule}
+    text = json.dumps(document, sort_keys=True, separators=(",", ":"))
     plan_hash = hashlib.sha256(text.encode()).hexdigest()
     folder = plan_hash[:12] if study_uid is None else f"{spec.study}-{study_uid}"
 
@@ -143,7 +154,7 @@ def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
         )
         for method, config_id, seed, params, choices, config in drafts
     )
-    return Plan(entries=entries, hash=plan_hash)
+    return Plan(entries=entries, hash=plan_hash, schedule=schedule)
 
 
 #: the first part of a confirmation key

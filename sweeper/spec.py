@@ -23,7 +23,7 @@ import math
 import os
 import re
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import (
     AfterValidator,
@@ -37,8 +37,9 @@ from pydantic import (
     model_validator,
 )
 
-from agent.config import SACConfig
+from agent.config import EPISODE_STEPS, SACConfig
 from encoders.options import hyperparameters
+from sweeper.halving import DEFAULT_KEEP, default_rungs
 from sweeper.spec_errors import format_errors, spec_error, suggest
 from sweeper.spec_space import (
     Method,
@@ -263,6 +264,25 @@ class ConfirmSpec(StrictModel):
     seeds: PosInt = Field(description="fresh seeds (not the search's) each one runs on")
 
 
+class Halving(StrictModel):
+    """Paired successive halving (``sweeper.halving``): every method runs all its
+    configurations to the first rung; at each rung ``keep`` of them (rounded up) go on,
+    chosen by ``rule``, the same number for every method."""
+
+    rungs: tuple[PosInt, ...] | None = Field(
+        None,
+        description="env steps where trials pause, increasing, on the evaluation grid and "
+        "episode ends, past budget.seed_steps and below budget.env_steps; null: 1/9 and 1/3 "
+        "of env_steps",
+    )
+    keep: float = Field(DEFAULT_KEEP, gt=0, lt=1, description="the fraction that goes on")
+    rule: Literal["per_method", "mean_rank"] = Field(
+        "per_method",
+        description="per_method: each method keeps its own best configurations; mean_rank: "
+        "all keep those of the best mean rank over the methods (paired at every rung)",
+    )
+
+
 class StudySpec(StrictModel):
     """A whole study: what runs (env, methods, search space, budget) and where."""
 
@@ -306,6 +326,9 @@ class StudySpec(StrictModel):
         "database, or runs/<study>/artifacts",
     )
     execution: Execution = Execution()
+    halving: Halving | None = Field(
+        None, description="paired successive halving: rungs, keep, rule; null: none"
+    )
 
     @field_validator("study")
     @classmethod
@@ -360,6 +383,42 @@ class StudySpec(StrictModel):
                 at="trials_per_method",
             )
         return self
+
+    @model_validator(mode="after")
+    def _rungs_on_grid(self) -> StudySpec:
+        if self.halving is None:
+            return self
+        budget, rungs = self.budget, self.rungs
+        if not rungs:
+            raise spec_error(
+                f"budget.env_steps={budget.env_steps} is too short for the default rungs "
+                "(1/9 and 1/3 of it on the evaluation grid): give halving.rungs",
+                at="halving.rungs",
+            )
+        grid = math.lcm(budget.eval_every, EPISODE_STEPS)
+        for step in rungs:
+            if step % grid or not budget.seed_steps < step < budget.env_steps:
+                raise spec_error(
+                    f"{step} is not a rung: rungs are multiples of budget.eval_every="
+                    f"{budget.eval_every} and of the episode length {EPISODE_STEPS}, past "
+                    f"budget.seed_steps={budget.seed_steps} and below budget.env_steps="
+                    f"{budget.env_steps}",
+                    at="halving.rungs",
+                )
+        if list(rungs) != sorted(set(rungs)):
+            raise spec_error(f"must increase strictly, got {list(rungs)}", at="halving.rungs")
+        return self
+
+    @property
+    def rungs(self) -> tuple[int, ...]:
+        """The halving rungs (the given ones, else ``sweeper.halving.default_rungs``); empty
+        without halving."""
+        if self.halving is None:
+            return ()
+        if self.halving.rungs is not None:
+            return self.halving.rungs
+        budget = self.budget
+        return default_rungs(budget.env_steps, math.lcm(budget.eval_every, EPISODE_STEPS))
 
     @model_validator(mode="after")
     def _videos_on_grid(self) -> StudySpec:

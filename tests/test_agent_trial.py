@@ -146,6 +146,30 @@ def test_resume_gives_the_same_curve(tmp_path: Path) -> None:
     assert straight.metrics == resumed.metrics and straight.auc == resumed.auc
 
 
+def test_a_trial_paused_at_a_rung_goes_on_to_the_uninterrupted_curve(tmp_path: Path) -> None:
+    """Successive halving: stop_at pauses at a rung with a checkpoint; a later stop_at (or
+    none) goes on from it, and the curve is the one of a run that never paused (CPU)."""
+    config = tiny(
+        total_steps=200, eval_every=50, checkpoint_every=1000, checkpoint_dir=str(tmp_path)
+    )
+    paused = agent.train(dataclasses.replace(config, stop_at=100))
+    assert paused.outcome == "paused" and paused.steps == (0, 50, 100)
+    assert paused.auc == pytest.approx(normalized_auc(paused.steps, paused.metrics["success_rate"]))
+    again = agent.train(dataclasses.replace(config, stop_at=100))  # a driver relaunched
+    assert again.outcome == "paused" and again.resumed_from == 100
+    assert again.metrics == paused.metrics
+    second = agent.train(dataclasses.replace(config, stop_at=150))
+    assert second.outcome == "paused" and second.resumed_from == 100 and second.steps[-1] == 150
+    finished = agent.train(config)
+    assert finished.outcome == "completed" and finished.resumed_from == 150
+
+    straight = agent.train(dataclasses.replace(config, checkpoint_dir=None))
+    assert straight.steps == finished.steps
+    assert straight.metrics == finished.metrics and straight.auc == finished.auc
+    with pytest.raises(ValueError, match="stop_at"):
+        dataclasses.replace(config, stop_at=200)
+
+
 def test_corrupt_checkpoint_is_ignored(tmp_path: Path) -> None:
     # no updates (seed_steps = total_steps): this test is about the file, not the learner
     config = tiny(

@@ -108,3 +108,56 @@ def test_replay_refuses_an_incomplete_study_and_bad_rungs():
     del curves[("a", 1, 1)]
     with pytest.raises(ValueError, match="not complete"):
         halving.replay(curves, rungs=[100], keep=0.5, rule="per_method")
+
+
+def _halving_spec(**halving):
+    return _plain_spec(halving=halving)
+
+
+def test_a_spec_halving_section_enters_the_plan_and_its_hash_only_when_present():
+    from sweeper.plan import build_plan
+    from sweeper.spec import SpecError
+
+    plain = build_plan(_plain_spec())
+    assert plain.schedule is None
+    spec = _halving_spec(rungs=[200, 400], keep=0.34)
+    plan = build_plan(spec)
+    assert plan.schedule.stops == (200, 400, 900) and plan.schedule.sizes == (3, 2, 1)
+    assert plan.schedule.rule == "per_method"
+    assert plan.hash != plain.hash and plan.keys() == plain.keys()
+    assert (
+        build_plan(_halving_spec(rungs=[200, 400], keep=0.34, rule="mean_rank")).hash != plan.hash
+    )
+    with pytest.raises(SpecError, match=r"past budget\.seed_steps"):
+        _halving_spec()  # the default rungs, 1/9 and 1/3 of 900: 100 is not past seed_steps
+
+
+def _plain_spec(**changes):
+    """studies/ci.yaml with 3 configurations of 900 steps, and ``changes``."""
+    import yaml
+    from conftest import CI_SPEC
+
+    from sweeper.spec import parse_spec
+
+    data = yaml.safe_load(CI_SPEC.read_text())
+    data["trials_per_method"] = 3
+    data["budget"] = {"env_steps": 900, "seed_steps": 100, "eval_every": 100, "eval_episodes": 1}
+    return parse_spec(data | changes)
+
+
+@pytest.mark.parametrize(
+    ("halving", "message"),
+    [
+        ({"rungs": [250]}, "250 is not a rung: rungs are multiples of budget.eval_every=100"),
+        ({"rungs": [100]}, "past budget.seed_steps=100"),
+        ({"rungs": [900]}, "below budget.env_steps=900"),
+        ({"rungs": [400, 200]}, "must increase strictly"),
+        ({"keep": 1.0}, "keep"),
+        ({"rule": "median"}, "rule"),
+    ],
+)
+def test_a_bad_halving_section_is_one_line(halving, message):
+    from sweeper.spec import SpecError
+
+    with pytest.raises(SpecError, match=message.replace(".", r"\.")):
+        _halving_spec(**halving)

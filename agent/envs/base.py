@@ -19,7 +19,8 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
-EPISODE_STEPS = 50
+from agent.config import EPISODE_STEPS
+
 OBS_MODES = ("image", "state")
 
 
