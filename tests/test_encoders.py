@@ -87,10 +87,13 @@ def test_an_encoder_is_built_with_its_declared_options(name: str, vgg_weights) -
     if name == "conv":  # PyTorch's init: random biases (DrQ's: zero)
         assert encoder.net[0][0].bias.detach().abs().max() > 0
     if name in ("vae", "cvae"):
-        assert encoder.num_images == 9 and (encoder.beta, encoder.lr) == (2.5, 2e-3)
+        assert encoder.num_images == 9  # read by the trial, which collects that many frames
         report = encoder.fit(images(7, 48), progress=False)
         assert report.epochs == 2 and len(report.losses) == 2
-        assert encoder.batch_size == 3
+        for option in ("beta", "lr", "batch_size"):  # each one changes the training
+            default = next(f.default for f in declared if f.name == option)
+            other = make_encoder(name, (48, 48, 3), **{**given, option: default})
+            assert other.fit(images(7, 48), progress=False).losses != report.losses, option
     if name == "vgg":
         assert encoder.dim == 512 * 2 * 2  # 64 / 2^5 = 2 per side
         assert encoder.encode(images(1, 48)).shape == (1, 2048)

@@ -17,6 +17,7 @@ from conftest import wait_until
 from optuna.trial import TrialState
 
 from sweeper.storage import (
+    DRIVER_STALE_SECONDS,
     Counts,
     StorageError,
     StudyBusy,
@@ -24,6 +25,8 @@ from sweeper.storage import (
     check_storage,
     current_trials,
     database_error,
+    is_database_error,
+    is_outage,
     ledger,
     open_storage,
     process_start,
@@ -243,43 +246,70 @@ def test_driver_lock(sqlite_url):
 
 
 CLAIMER = """
-import json, sys, time
+import json, os, sys
+from pathlib import Path
 import optuna
 from sweeper.storage import StudyBusy, StudyStore, open_storage
 optuna.logging.set_verbosity(optuna.logging.WARNING)
-url, start, rounds = sys.argv[1], float(sys.argv[2]), int(sys.argv[3])
+url, folder, me, rounds = sys.argv[1], Path(sys.argv[2]), sys.argv[3], int(sys.argv[4])
+other = "1" if me == "0" else "0"
 store = StudyStore.find(open_storage(url, create=False), "race")
+
+
+def wait_for(path):
+    while not path.exists():  # spin: both claimers are released within microseconds
+        pass
+
+
 results = []
 for i in range(rounds):
-    while time.time() < start + i:  # every claimer is released at the same instant
-        pass
+    (folder / f"ready-{i}-{me}").touch()
+    wait_for(folder / f"go-{i}")
     try:
         store.claim_driver()
         results.append("ok")
-        time.sleep(0.5)
-        store.release_driver()
     except StudyBusy:
         results.append("busy")
+    (folder / f"tried-{i}-{me}").touch()
+    wait_for(folder / f"tried-{i}-{other}")  # the winner holds the claim until both tried
+    if results[-1] == "ok":
+        store.release_driver()
+    (folder / f"done-{i}-{me}").touch()
+    wait_for(folder / f"done-{i}-{other}")
 print(json.dumps(results))
 """
 
 
 @pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
-def test_two_processes_released_together_never_both_claim(backend, request):
-    """The claim is one atomic step: of two claimers released in the same millisecond,
+def test_two_processes_released_together_never_both_claim(backend, request, tmp_path):
+    """The claim is one atomic step: of two claimers released in the same microsecond,
     exactly one becomes the driver, round after round."""
     url = request.getfixturevalue("sqlite_url" if backend == "sqlite" else "pg_url")
     StudyStore.open_or_create(open_storage(url), "race", {"plan_hash": "h"})
-    rounds, start = 6, time.time() + 8  # both have imported optuna by then
+    rounds = 6
     claimers = [
         subprocess.Popen(
-            [sys.executable, "-c", CLAIMER, url, str(start), str(rounds)],
+            [sys.executable, "-c", CLAIMER, url, str(tmp_path), me, str(rounds)],
             stdout=subprocess.PIPE,
             text=True,
         )
-        for _ in range(2)
+        for me in ("0", "1")
     ]
-    outcomes = [json.loads(c.communicate(timeout=120)[0]) for c in claimers]
+    try:
+        for i in range(rounds):  # released once both wait, each round
+            wait_until(
+                lambda i=i: (
+                    all((tmp_path / f"ready-{i}-{me}").exists() for me in "01")
+                    or any(c.poll() is not None for c in claimers)
+                ),
+                120,
+                f"both claimers at round {i}",
+            )
+            (tmp_path / f"go-{i}").touch()
+        outcomes = [json.loads(c.communicate(timeout=120)[0]) for c in claimers]
+    finally:
+        for claimer in claimers:
+            claimer.kill()
     for round_ in zip(*outcomes, strict=True):
         assert sorted(round_) == ["busy", "ok"], outcomes
 
@@ -310,16 +340,74 @@ def test_the_heartbeat_beats_while_the_driver_is_busy(sqlite_url):
     """A thread keeps the record fresh while the driver's own thread is busy (a long sync)."""
     store = StudyStore.open_or_create(open_storage(sqlite_url), "beat", {"plan_hash": "h"})
     store.claim_driver()
+    first = store.attrs["driver"]["heartbeat"]
     with store.heartbeats(interval=0.1) as beat:
-        first = store.attrs["driver"]["heartbeat"]
-        time.sleep(1.0)  # busy, no heartbeat call from this thread
-        assert store.attrs["driver"]["heartbeat"] > first + 0.5
+        # this thread never beats: only the heartbeat thread can move the record on, twice
+        wait_until(lambda: store.attrs["driver"]["heartbeat"] > first, 60, "a beat")
+        second = store.attrs["driver"]["heartbeat"]
+        wait_until(lambda: store.attrs["driver"]["heartbeat"] > second, 60, "another beat")
+        beat.check()  # nobody else: no error
         taken = {"host": "elsewhere", "pid": 1, "heartbeat": time.time() + 3600}
         store.storage.set_study_user_attr(store.study_id, "driver", taken)
-        time.sleep(0.5)
+        wait_until(lambda: beat.error is not None, 60, "the beat that finds the other driver")
         with pytest.raises(StudyBusy, match="host elsewhere"):
             beat.check()  # another driver took the study over: this one must stop
     assert store.attrs["driver"] == taken  # and its record is left alone
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_a_driver_on_another_host_is_alive_while_its_heartbeat_is_fresh(backend, request):
+    """On another host only the heartbeat tells: younger than DRIVER_STALE_SECONDS blocks a
+    claim, older is a dead driver's record and is taken over."""
+    url = request.getfixturevalue("sqlite_url" if backend == "sqlite" else "pg_url")
+    store = StudyStore.open_or_create(open_storage(url), "hosts", {"plan_hash": "h"})
+    # its pid is this process's: on this host it would be alive whatever its heartbeat
+    elsewhere = {"host": "elsewhere", "pid": os.getpid(), "started": process_start(os.getpid())}
+    now = time.time()
+    for age in (0.0, DRIVER_STALE_SECONDS - 5):
+        record = {**elsewhere, "heartbeat": now - age}
+        store.storage.set_study_user_attr(store.study_id, "driver", record)
+        with pytest.raises(StudyBusy, match="host elsewhere"):
+            store.claim_driver()
+        assert store.attrs["driver"] == record  # refused: left as it was
+    stale = {**elsewhere, "heartbeat": now - DRIVER_STALE_SECONDS - 5}
+    store.storage.set_study_user_attr(store.study_id, "driver", stale)
+    assert not store.driver_alive()
+    store.claim_driver()  # taken over
+    mine = store.attrs["driver"]
+    assert (mine["host"], mine["pid"]) == (socket.gethostname(), os.getpid())
+    assert mine["heartbeat"] >= now
+
+
+def test_the_heartbeat_skips_a_beat_while_the_database_is_out(pg_url):
+    """A beat that cannot reach the database is skipped, not fatal: once PostgreSQL is back
+    (its proxy up) the next beats land, and the driver was never told to stop."""
+    from pg_proxy import Proxy
+
+    proxy = Proxy(("127.0.0.1", 5432))
+    url = pg_url.replace("127.0.0.1:5432", f"127.0.0.1:{proxy.port}")
+    store = StudyStore.open_or_create(open_storage(url), "outage", {"plan_hash": "h"})
+    store.claim_driver()
+    direct = StudyStore.find(open_storage(pg_url), "outage")  # reads past the proxy
+    missed = []
+    beat_once = store.heartbeat
+
+    def heartbeat():
+        try:
+            beat_once()
+        except Exception as e:
+            missed.append(e)
+            raise
+
+    store.heartbeat = heartbeat  # what the heartbeat thread calls
+    with store.heartbeats(interval=0.1) as beat:
+        proxy.down()
+        wait_until(lambda: len(missed) >= 2, 60, "beats missed during the outage")
+        back = time.time()
+        proxy.up()
+        wait_until(lambda: direct.attrs["driver"]["heartbeat"] > back, 60, "a beat after it")
+        beat.check()  # no error: the outage did not stop the driver
+    assert all(is_database_error(e) and is_outage(e) for e in missed), missed
 
 
 def test_sync_repairs_orphans_of_an_interrupted_setup(sqlite_url):
@@ -355,16 +443,24 @@ except storage.StudyBusy:
 """
 
 
-def test_sync_creates_5000_trials_in_seconds_on_postgresql(pg_url):
-    """The plan's trials are created in bulk: 5,000 keys well within the driver's heartbeat."""
+def test_sync_creates_5000_trials_in_bulk_on_postgresql(pg_url):
+    """The plan's trials are created in bulk: 5,000 keys in a fraction of the time Optuna's
+    one trial per call takes on the same machine at the same moment (measured first), so
+    the bound holds however loaded the machine is."""
     entries = [Entry(m, c, s) for m in ("pixel", "vae") for c in range(250) for s in range(10)]
     store = StudyStore.open_or_create(open_storage(pg_url), "big", {"plan_hash": "h"})
     store.claim_driver()
+    # Optuna's way, one trial per call, measured here and now (whatever the machine's load)
+    single = StudyStore.open_or_create(open_storage(pg_url), "single", {"plan_hash": "h"})
+    start = time.perf_counter()
+    for entry in entries[:50]:
+        single.add_waiting(entry.params, entry.choices, {"key": entry.key})
+    one_by_one = (time.perf_counter() - start) / 50 * len(entries)
     start = time.perf_counter()
     todo = store.sync(entries, "h")
     seconds = time.perf_counter() - start
-    print(f"sync of {len(entries)} entries: {seconds:.1f} s")
-    assert seconds < 30
+    print(f"sync of {len(entries)} entries: {seconds:.1f} s; one by one: {one_by_one:.0f} s")
+    assert seconds < one_by_one / 5
     assert [entry.key for entry, _ in todo] == [e.key for e in entries]
     trials = store.trials()
     assert len(trials) == 5000 and {t.state for t in trials} == {TrialState.WAITING}
