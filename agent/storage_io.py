@@ -91,8 +91,14 @@ def write_atomic(location: str, write: Callable[[BinaryIO], object]) -> None:
             fs.pipe_file(path, buffer.getvalue())
         return
     path = _local(location)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    for attempt in range(3):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+            break
+        except FileNotFoundError:  # an emptied parent removed meanwhile (``remove``): again
+            if attempt == 2:
+                raise
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
@@ -118,13 +124,24 @@ def exists(location: str) -> bool:
     return _local(location).exists()
 
 
-def remove(location: str) -> None:
+def remove(location: str, parents: int = 0) -> None:
     """Delete ``location`` and everything under it (a trial's checkpoint folder once its
-    result is recorded); nothing there is fine."""
+    result is recorded), then up to ``parents`` folders above it that it leaves empty (a
+    local path; an object store has no empty folders); nothing there is fine. A folder
+    another writer fills meanwhile is kept, and ``write_atomic`` makes again a parent
+    removed under it."""
     if is_uri(location):
         fs, path = _filesystem(location)
         with contextlib.suppress(FileNotFoundError):
             fs.rm(path, recursive=True)
         return
+    folder = _local(location)
     with contextlib.suppress(FileNotFoundError):
-        shutil.rmtree(_local(location))
+        shutil.rmtree(folder)
+    for parent in list(folder.parents)[:parents]:
+        try:
+            parent.rmdir()
+        except FileNotFoundError:  # gone already
+            continue
+        except OSError:  # not empty: another trial's
+            return

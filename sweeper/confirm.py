@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
-from sweeper.spec import StudySpec, positive_int
+from sweeper.spec import StudySpec, check_files, positive_int
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -39,6 +40,7 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
         try:
             try:
                 spec, plan = prepare(spec, address=args.address, max_concurrent=args.max_concurrent)
+                check_files(spec, str(Path(args.spec)), can_skip=False)
                 top_k, seeds = settings(spec, args.top_k, args.seeds)
                 check_study(spec, plan, top_k, seeds)
             except ValueError as e:  # SpecError, StorageError

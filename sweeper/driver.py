@@ -279,12 +279,13 @@ def checkpoint_step(entry: PlanEntry) -> int | None:
 
 
 def remove_checkpoint(entry: PlanEntry, progress: LaunchProgress) -> None:
-    """Delete a recorded trial's checkpoint folder: it is never resumed again, and a
-    study of thousands of trials would otherwise keep every replay buffer on disk."""
+    """Delete a recorded trial's checkpoint folder, and its ``<method>/<config_id>``
+    folders once empty: it is never resumed again, and a study of thousands of trials
+    would otherwise keep every replay buffer (and thousands of empty folders) on disk."""
     location = entry.trial_config.checkpoint_dir
     if location is None:
         return
     try:
-        remove(location)
+        remove(location, parents=2)
     except Exception as e:  # the result is recorded: a checkpoint left over is no error
         progress.note(f"{entry.key}: could not remove its checkpoint {location}: {e}")

@@ -11,20 +11,29 @@ as a ``Lost`` event, and the pool replaces the actor.
 from __future__ import annotations
 
 import contextlib
+import functools
 import inspect
+import logging
 import os
 import re
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import ray
+import ray._private.worker as ray_worker
 from ray._private import ray_constants
+from ray._private.authentication import authentication_token_setup
+
+from sweeper import reaper
 
 #: Ray's switch between cluster mode (listen on every interface) and a single machine
 LOOPBACK_VARIABLE = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
@@ -33,20 +42,24 @@ METRICS_VARIABLE = "RAY_enable_metrics_collection"
 
 
 def start_ray(address: str | None, num_cpus: int | None = None) -> bool:
-    """Connect to Ray; return True if this call started it (so the caller shuts it down).
+    """Connect to Ray; return True if this call started it (so the caller shuts it down,
+    with ``stop_ray``).
 
     ``address=None`` starts a fresh local instance (``address="local"``: a plain
     ``ray.init()`` would attach to whatever cluster a stale /tmp/ray file names) that
     listens on 127.0.0.1 only and exports no metrics unless ``RAY_enable_metrics_collection``
-    says so. An already initialised Ray (e.g. in a notebook or a test) is used as it is.
-    This process's SIGTERM handler is the same after the call (``_keep_sigterm``).
+    says so, with a reaper beside it (``sweeper.reaper``): none of its processes outlives
+    this one, even after a SIGKILL. An already initialised Ray (e.g. in a notebook or a
+    test) is used as it is. This process's SIGTERM handler is the same after the call
+    (``_keep_sigterm``), and Ray's own noise stays out of the launch's output
+    (``_quiet_ray``).
     """
     if ray.is_initialized():
         return False
     common = {"log_to_driver": False, "logging_level": "WARNING"}
     if address is None:
         metrics = {} if METRICS_VARIABLE in os.environ else {"enable_metrics_collection": False}
-        with _loopback_only(), _keep_sigterm():
+        with _loopback_only(), _keep_sigterm(), _quiet_ray(), _reaped():
             ray.init(
                 address="local",
                 num_cpus=num_cpus,
@@ -57,9 +70,111 @@ def start_ray(address: str | None, num_cpus: int | None = None) -> bool:
             )
     else:
         _check_reachable(address)
-        with _keep_sigterm():
+        with _keep_sigterm(), _quiet_ray():
             ray.init(address=address, **common)
     return True
+
+
+def stop_ray() -> None:
+    """Shut down the Ray ``start_ray`` started; its reaper then kills what is left of it
+    (a process slow to go) and exits, before this returns."""
+    try:
+        ray.shutdown()
+    finally:
+        _stop_reaper()
+
+
+#: the reaper of the local Ray this process started, and the write end of its pipe
+_reaper: tuple[subprocess.Popen, int] | None = None
+
+
+def _children() -> set[int]:
+    """This process's children."""
+    return reaper.children(os.getpid())
+
+
+@contextlib.contextmanager
+def _reaped() -> Iterator[None]:
+    """Start a reaper (``sweeper.reaper``) before the block starts a local Ray, and name
+    it the processes the block started, the Ray's roots, after it."""
+    global _reaper
+    _stop_reaper()  # one from a Ray shut down without stop_ray
+    before = _children()
+    read, write = os.pipe()  # the write end is this process's alone (not inherited)
+    try:
+        process = subprocess.Popen(
+            [sys.executable, "-I", str(Path(reaper.__file__)), str(read)],
+            pass_fds=(read,),
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+        )
+    except BaseException:
+        os.close(write)
+        raise
+    finally:
+        os.close(read)
+    _reaper = process, write
+    try:
+        yield
+    except BaseException:  # a Ray that failed to start: the reaper kills what it left
+        _stop_reaper()
+        raise
+    roots = _children() - before - {process.pid}
+    with contextlib.suppress(OSError):  # a reaper that died: nothing to tell it
+        os.write(write, (" ".join(map(str, sorted(roots))) + "\n").encode())
+
+
+def _stop_reaper(timeout: float = 2 * reaper.KILL_WAIT) -> None:
+    """Close the reaper's pipe and wait for it to have killed what is left and exited."""
+    global _reaper
+    if _reaper is None:
+        return
+    process, write = _reaper
+    _reaper = None
+    os.close(write)
+    try:
+        process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+#: how Ray's raylet reports a dead worker to the driver (the driver's own line about the
+#: lost trial says it, ``Lost``; the full text stays in the trial's ``worker_deaths``)
+WORKER_DIED = "A worker died or was killed"
+
+
+def _without_worker_deaths(print_to_stdstream: Callable[..., None]) -> Callable[..., None]:
+    """Ray's printer of the errors its raylet sends the driver, without worker deaths."""
+
+    @functools.wraps(print_to_stdstream)
+    def printer(data: dict[str, Any], *args: Any, **kwargs: Any) -> None:
+        if data.get("pid") == "raylet" and "".join(data.get("lines", ())).startswith(WORKER_DIED):
+            return
+        print_to_stdstream(data, *args, **kwargs)
+
+    printer.sweeper_quiet = True  # type: ignore[attr-defined]
+    return printer
+
+
+@contextlib.contextmanager
+def _quiet_ray() -> Iterator[None]:
+    """Keep Ray's noise out of a launch's output while the block connects to Ray, and
+    after: the warning that token authentication is on, which a new local Ray prints at
+    every start (the mode is left as Ray sets it: on, unless ``RAY_AUTH_MODE`` says
+    otherwise), and the multi-line text the raylet sends for every dead worker, which the
+    driver's thread listening for Ray's errors prints beside sweeper's own line (that
+    thread runs whatever ``log_to_driver`` says; other errors are still printed).
+    """
+    if not getattr(ray_worker.print_to_stdstream, "sweeper_quiet", False):
+        ray_worker.print_to_stdstream = _without_worker_deaths(ray_worker.print_to_stdstream)
+    auth = logging.getLogger(authentication_token_setup.__name__)
+    level = auth.level
+    auth.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        auth.setLevel(level)
 
 
 @contextlib.contextmanager

@@ -8,8 +8,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
 
-from sweeper.spec import StudySpec, positive_int
+from sweeper.spec import StudySpec, check_files, positive_int
+
+if TYPE_CHECKING:
+    from sweeper.plan import Plan
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,6 +30,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=positive_int,
         help="trials at once, overriding the spec's execution.max_concurrent",
     )
+    parser.add_argument(
+        "--skip-missing",
+        action="store_true",
+        help="launch without the methods whose files are missing here (e.g. vgg's "
+        "weights_path): their trials stay left in the study for a launch with the files; "
+        "the other methods run their full budget",
+    )
 
 
 def run(spec: StudySpec, args: argparse.Namespace) -> int:
@@ -37,10 +49,34 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
         try:
             try:
                 spec, plan = prepare(spec, address=args.address, max_concurrent=args.max_concurrent)
+                skip = check_files(spec, str(Path(args.spec)), args.skip_missing)
             except ValueError as e:  # SpecError, StorageError
                 print(f"sweeper launch: {e}", file=sys.stderr)
                 return 2
-            return launch(spec, plan)
+            if skip:
+                print("\n".join(skip_lines(spec, plan, skip)), file=sys.stderr)
+            return launch(spec, plan, skip=skip)
         except KeyboardInterrupt:  # outside the driver loop, which handles its own
             print("\nsweeper launch: stopped", file=sys.stderr)
             return EXIT_INTERRUPTED
+
+
+def skip_lines(spec: StudySpec, plan: Plan, skip: frozenset[str]) -> list[str]:
+    """What a launch with ``--skip-missing`` runs: which methods are left out and why, and
+    the budget of the others (trials per method as planned, so their comparison is fair)."""
+    lines = [
+        f"sweeper launch: skipping {item.method}: {item.at}: {item.message}"
+        for item in spec.missing_files()
+        if item.method in skip
+    ]
+    runs = [m for m in spec.methods if m not in skip]
+    per_method = spec.trials_per_method_total
+    skipped = sum(e.method in skip for e in plan.entries)
+    lines.append(
+        f"sweeper launch: this launch runs {len(runs)} of {len(spec.methods)} methods "
+        f"({', '.join(runs)}), {per_method} trials each as planned: "
+        f"{len(plan.entries) - skipped} of the plan's {len(plan.entries)} trials; "
+        f"the {skipped} of {', '.join(sorted(skip))} stay left in the study (`sweeper status` "
+        "counts them) for a launch with the files"
+    )
+    return lines

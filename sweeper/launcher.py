@@ -19,6 +19,7 @@ not to the progress display.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import signal
 import sys
@@ -26,14 +27,13 @@ from collections.abc import Callable, Iterator
 from typing import Any, TextIO
 
 import optuna
-import ray
 
 from agent.envs import env_class
 from agent.metrics import metric_key
 from sweeper import random_agent
 from sweeper.driver import Driver
 from sweeper.estimate import InBackground, TrialEstimate, finished, summary_lines
-from sweeper.execution import WorkerPool, start_ray
+from sweeper.execution import WorkerPool, start_ray, stop_ray
 from sweeper.plan import Plan, build_plan
 from sweeper.progress import LaunchProgress
 from sweeper.resources import cannot_reach_message, local_cpus, pool_size
@@ -133,6 +133,7 @@ def launch(
     train: Callable[..., Any] | None = None,
     stream: TextIO | None = None,
     stage: Stage | None = None,
+    skip: frozenset[str] = frozenset(),
 ) -> int:
     """Run (or resume) the study of a validated ``spec``; return the exit code.
 
@@ -141,7 +142,10 @@ def launch(
     ``execution.address``) and shut down at the end. ``train`` replaces ``agent.train`` in
     the workers (tests). ``stage`` gives the plan to run once the study is claimed
     (default: the search plan; ``sweeper.confirm``: the confirmation stage); a StorageError
-    from it exits 2. SIGTERM raises ``Interrupted`` throughout.
+    from it exits 2. ``skip``: methods this launch leaves out (``sweeper launch
+    --skip-missing``): their keys are synced like the others, so they stay left in the
+    ledger, and are not run; the plan, and its hash, stay whole. SIGTERM raises
+    ``Interrupted`` throughout.
     """
     stream = sys.stderr if stream is None else stream
     execution = spec.execution
@@ -152,29 +156,32 @@ def launch(
             print(f"sweeper launch: {e}", file=stream)
             return 2
         study = read_study(spec, plan)
-        if stage is None and all_done(spec, plan, study):  # a relaunch with nothing left: no Ray
-            total = len(plan.entries)
+        runs = without(plan, skip)
+        if stage is None and all_done(spec, runs, study):  # a relaunch with nothing left: no Ray
+            total = done = len(plan.entries)
+            if skip and study is not None:  # the skipped keys an earlier launch ran count
+                done = sum(c.done for c in ledger(plan.keys(), study[0], False).values())
             print(
-                f"study {spec.study!r} in {redact(spec.storage_url)}: {total} of {total} "
-                "trials done, 0 to run",
+                f"study {spec.study!r} in {redact(spec.storage_url)}: {done} of {total} "
+                f"trials done, 0 to run{skipped_note(plan, skip)}",
                 file=stream,
             )
             return 0
         # the calibration runs while Ray and the workers start
-        estimate = None if stage is not None else start_estimate(plan, study)
+        estimate = None if stage is not None else start_estimate(runs, study)
         try:
             started_ray = start_ray(execution.address, num_cpus=local_cpus(execution))
         except SystemExit:  # Ray's own SIGTERM handlers, set while it starts, exit this way
-            ray.shutdown()
+            stop_ray()
             raise Interrupted() from None
         except Exception as e:  # ConnectionError, an auth error, ...
             print(cannot_reach_message(execution.address, e), file=stream)
             return 2
         try:
-            return _launch_on_ray(spec, plan, train, stream, stage, estimate)
+            return _launch_on_ray(spec, plan, train, stream, stage, estimate, skip)
         finally:
             if started_ray:
-                ray.shutdown()
+                stop_ray()
 
 
 def read_study(spec: StudySpec, plan: Plan) -> tuple[list[Any], dict[str, Any]] | None:
@@ -207,10 +214,11 @@ def _launch_on_ray(
     stream: TextIO,
     stage: Stage | None,
     estimate: InBackground | None = None,
+    skip: frozenset[str] = frozenset(),
 ) -> int:
     """Size the worker pool to the Ray cluster, start it and run the study."""
     execution = spec.execution
-    size = pool_size(execution, len(plan.entries), stream)
+    size = pool_size(execution, len(without(plan, skip).entries), stream)
     if size is None:
         return 2
     # the workers start (importing torch and the env) while the driver opens the study
@@ -223,7 +231,7 @@ def _launch_on_ray(
         stall_timeout=execution.stall_timeout,
     )
     try:
-        return _run_study(spec, plan, pool, stream, stage, estimate)
+        return _run_study(spec, plan, pool, stream, stage, estimate, skip)
     finally:
         pool.shutdown()
 
@@ -235,6 +243,7 @@ def _run_study(
     stream: TextIO,
     stage: Stage | None = None,
     estimate: InBackground | None = None,
+    skip: frozenset[str] = frozenset(),
 ) -> int:
     """Open the study as its driver, its heartbeat beating until it lets go; run it."""
     optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -257,7 +266,7 @@ def _run_study(
                             f"{store.attrs.get('revision')}; this is {attrs['revision']}",
                             file=stream,
                         )
-                    return _sync_and_drive(spec, store, pool, beat, stream, stage, estimate)
+                    return _sync_and_drive(spec, store, pool, beat, stream, stage, estimate, skip)
             except StorageError as e:  # the stage cannot be run (sweeper confirm)
                 print(f"sweeper {'launch' if stage is None else 'confirm'}: {e}", file=stream)
                 return 2
@@ -279,16 +288,20 @@ def _sync_and_drive(
     stream: TextIO,
     stage: Stage | None = None,
     estimate: InBackground | None = None,
+    skip: frozenset[str] = frozenset(),
 ) -> int:
-    """Give the plan's keys their trials, then run what is left."""
+    """Give the plan's keys their trials, then run what is left (but ``skip``'s)."""
     # bound to the study: its checkpoints are its own
     plan = build_plan(spec, study_uid=store.study_uid) if stage is None else stage(spec, store)
     todo = store.sync(plan.entries, plan.hash)
+    skipped = sum(entry.method in skip for entry, _ in todo)
+    todo = [(entry, trial) for entry, trial in todo if entry.method not in skip]
     random_agent.record_random_agent(spec, store, stream)
     total = len(plan.entries)
     print(
-        f"study {spec.study!r} in {redact(spec.storage_url)}: {total - len(todo)} of {total} "
-        f"trials done, {len(todo)} to run",
+        f"study {spec.study!r} in {redact(spec.storage_url)}: "
+        f"{total - len(todo) - skipped} of {total} trials done, {len(todo)} to run"
+        f"{skipped_note(plan, skip)}",
         file=stream,
     )
     if not todo:
@@ -296,10 +309,26 @@ def _sync_and_drive(
     pool.shrink(len(todo))
     estimates = None if estimate is None else print_estimate(spec, plan, estimate, stream)
     progress = LaunchProgress(
-        spec.study, plan.keys(), spec.budget.env_steps, stream,
+        spec.study, without(plan, skip).keys(), spec.budget.env_steps, stream,
         estimates=estimates, workers=len(pool),
     )  # fmt: skip
     return Driver(spec, store, pool, progress, beat, stream).run(todo)
+
+
+def without(plan: Plan, skip: frozenset[str]) -> Plan:
+    """``plan`` without the entries of the methods in ``skip`` (its hash unchanged)."""
+    if not skip:
+        return plan
+    return dataclasses.replace(plan, entries=tuple(e for e in plan.entries if e.method not in skip))
+
+
+def skipped_note(plan: Plan, skip: frozenset[str]) -> str:
+    """What a launch's summary line adds when it skips methods (``--skip-missing``)."""
+    if not skip:
+        return ""
+    skipped = sum(e.method in skip for e in plan.entries)
+    methods = ", ".join(sorted(skip))
+    return f"; {methods} skipped ({skipped} trials, left for a launch with the files)"
 
 
 def start_estimate(plan: Plan, study: tuple[list[Any], dict[str, Any]] | None) -> InBackground:

@@ -23,7 +23,7 @@ import math
 import os
 import re
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, NamedTuple
 
 from pydantic import (
     AfterValidator,
@@ -45,6 +45,7 @@ from sweeper.spec_space import (
     Method,
     StrictModel,
     as_choices,
+    describe,
     distinct,
     method_names,
     method_options,
@@ -439,22 +440,27 @@ class StudySpec(StrictModel):
             return (self.budget.env_steps,)
         return () if self.videos == "none" else self.videos
 
-    @model_validator(mode="after")
-    def _local_files(self) -> StudySpec:
-        """On a local run, files the trials need must exist before anything starts."""
-        if self.execution.address is not None:
-            return self
+    def missing_files(self) -> tuple[MissingFile, ...]:
+        """The files the trials need that this launch cannot give them: a file option
+        (``hparam(file=True)``, e.g. vgg's ``weights_path``) with no value and no environment
+        variable set, or, on a local run (no ``execution.address``: on a cluster the file
+        lives on the workers), a path that is not a file here. Only a launch needs them
+        (``check_files``); the spec reads without them."""
+        missing = []
         for method_name, method in self.methods.items():
             for name, field in hyperparameters(method_options(method.encoder)).items():
-                missing = [
-                    p for p in method.space[name] if field.info.file and not Path(p).is_file()
-                ]
-                if missing:
-                    raise spec_error(
-                        f"file not found: {missing[0]!r} ({field.info.help})",
-                        at=f"methods.{method_name}.{name}",
-                    )
-        return self
+                if not field.info.file:
+                    continue
+                at = f"methods.{method_name}.{name}"
+                if name not in method.space:
+                    message = f"required field is missing; {describe(field.info)}"
+                    missing.append(MissingFile(method_name, at, message, unset=True))
+                    continue
+                absent = [p for p in method.space[name] if not Path(p).expanduser().is_file()]
+                if absent and self.execution.address is None:
+                    message = f"file not found: {absent[0]!r} ({field.info.help})"
+                    missing.append(MissingFile(method_name, at, message, unset=False))
+        return tuple(missing)
 
     @property
     def run_dir(self) -> Path:
@@ -491,6 +497,42 @@ class StudySpec(StrictModel):
         if max_concurrent is not None:
             data["execution"]["max_concurrent"] = max_concurrent
         return parse_spec(data, source="override")
+
+
+class MissingFile(NamedTuple):
+    """A file a method's trials need and this launch lacks (``StudySpec.missing_files``)."""
+
+    method: str
+    at: str  # the dotted field, "methods.vgg.weights_path"
+    message: str  # "required field is missing; ..." or "file not found: ..."
+    unset: bool  # no value at all (else a path that is not a file here)
+
+
+def check_files(
+    spec: StudySpec, source: str, skip_missing: bool = False, can_skip: bool = True
+) -> frozenset[str]:
+    """Where trials run (``sweeper launch``, ``sweeper confirm``): raise ``SpecError``, one
+    line naming the field (and ``--skip-missing`` where the command ``can_skip``), when a
+    method lacks a file its trials need; with ``skip_missing``, return those methods
+    instead, to be left out of this launch. A file option with no value cannot be skipped:
+    its path is part of the plan (and its hash), so it must be named now for the skipped
+    trials to run later in the same study."""
+    missing = spec.missing_files()
+    if not skip_missing:
+        if missing:
+            first = missing[0]
+            hint = f"; or --skip-missing to launch without {first.method}" if can_skip else ""
+            raise SpecError(f"{source}: {first.at}: {first.message}{hint}")
+        return frozenset()
+    for item in missing:
+        if item.unset:
+            raise SpecError(
+                f"{source}: {item.at}: required field is missing; --skip-missing needs the "
+                "path the file will have (it is part of the plan, so the skipped trials can "
+                "run later in this study): give it in the spec or set its variable, "
+                f"{item.message.split('; ', 1)[1]}"
+            )
+    return frozenset(item.method for item in missing)
 
 
 # ---- loading -----------------------------------------------------------------------------------

@@ -29,6 +29,7 @@ from pydantic import (
 from agent.config import TRUE_REWARD_METHODS
 from encoders import encoder_names, encoder_options
 from encoders.options import (
+    Hyperparameter,
     NoOptions,
     default_space,
     hyperparameters,
@@ -96,8 +97,10 @@ class SearchSpace(StrictModel):
         return with_env_fallbacks(cls.hyperparameters, data) if isinstance(data, dict) else data
 
     def space(self) -> dict[str, tuple[Any, ...]]:
-        """Field name -> choices, in the dataclass's field order."""
-        return {name: getattr(self, name) for name in type(self).model_fields}
+        """Field name -> choices, in the dataclass's field order; a file option given no
+        value (``search_space``) is left out."""
+        space = {name: getattr(self, name) for name in type(self).model_fields}
+        return {name: choices for name, choices in space.items() if choices != ()}
 
 
 @functools.cache
@@ -105,18 +108,26 @@ def search_space(config: type) -> type[SearchSpace]:
     """The search-space model of ``config``, a dataclass of ``hparam`` fields: one field per
     hyperparameter, a value or a non-empty list of distinct choices of the field's type and
     bounds (``encoders.options.value_type``), defaulting to its declared search choices, else
-    its default; a field with neither (nor a set environment variable) is required."""
+    its default; a field with neither (nor a set environment variable) is required, except
+    a file (``hparam(file=True)``): only the trials need it, so a spec without it still
+    reads (``sweeper status``, ``plan``, ``aggregate``); ``StudySpec.missing_files`` says
+    what a launch lacks."""
     defaults = default_space(config)
     fields: dict[str, Any] = {}
     for name, (annotation, _, info) in hyperparameters(config).items():
         item = value_type(annotation, info)
         convert = as_size_choices if get_origin(annotation) is tuple else as_choices
         choices = Annotated[tuple[item, ...], BeforeValidator(convert), AfterValidator(distinct)]
-        description = info.help + (f" (or set ${info.env})" if info.env else "")
-        fields[name] = (choices, Field(defaults.get(name, ...), description=description or None))
+        default = defaults.get(name, () if info.file else ...)  # (): no value, left out
+        fields[name] = (choices, Field(default, description=describe(info) or None))
     model = create_model(f"{config.__name__}Space", __base__=SearchSpace, **fields)
     model.hyperparameters = config
     return model
+
+
+def describe(info: Hyperparameter) -> str:
+    """What a hyperparameter is, as errors say it: its help and its environment variable."""
+    return info.help + (f" (or set ${info.env})" if info.env else "")
 
 
 def method_names() -> tuple[str, ...]:

@@ -15,7 +15,7 @@ from conftest import ROOT
 from agent.config import SACConfig
 from encoders.options import VGGOptions, default_space, hyperparameters
 from sweeper import cli
-from sweeper.spec import SpecError, load_spec, load_yaml, parse_spec
+from sweeper.spec import SpecError, check_files, load_spec, load_yaml, parse_spec
 
 SAC_DEFAULTS = default_space(SACConfig)
 VGG_ENV = hyperparameters(VGGOptions)["weights_path"][2].env
@@ -269,13 +269,16 @@ def test_vgg_weights_from_env_var_or_spec(tmp_path, monkeypatch, vgg_weights):
     data["methods"] = {"vgg": {}}
     assert parse_spec(data).methods["vgg"].space["weights_path"] == (str(vgg_weights),)
     monkeypatch.delenv(VGG_ENV)
+    # a spec reads without its files (sweeper status); where trials run they are checked
+    assert "weights_path" not in parse_spec(data).methods["vgg"].space
     with pytest.raises(SpecError, match=rf"methods\.vgg\.weights_path: required.*{VGG_ENV}"):
-        parse_spec(data)
+        check_files(parse_spec(data), "spec")
     data["methods"] = {"vgg": {"weights_path": str(tmp_path / "missing.pth")}}
     with pytest.raises(SpecError, match=r"methods\.vgg\.weights_path: file not found"):
-        parse_spec(data)
+        check_files(parse_spec(data), "spec")
     data["execution"] = {"address": "auto"}  # a cluster: the file lives on the workers
     assert parse_spec(data).methods["vgg"].space["weights_path"] == (str(tmp_path / "missing.pth"),)
+    assert check_files(parse_spec(data), "spec") == frozenset()
 
 
 def test_a_spec_file_over_a_mebibyte_is_refused_before_it_is_parsed(tmp_path):
