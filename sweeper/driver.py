@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from agent.config import Outcome, TrialResult
+from agent.metrics import normalized_auc
 from agent.storage_io import is_uri, remove
 from sweeper.artifacts import ArtifactStore, artifact_location, upload_once
 from sweeper.execution import (
@@ -38,6 +39,7 @@ from sweeper.execution import (
     Started,
     WorkerPool,
 )
+from sweeper.halving import HALVING_ATTR, Curves, Ladder
 from sweeper.plan import PlanEntry, run_order
 from sweeper.progress import LaunchProgress
 from sweeper.spec import StudySpec
@@ -85,7 +87,11 @@ class Driver:
         progress: LaunchProgress,
         beat: Heartbeat,
         stream: TextIO,
+        ladder: Ladder | None = None,
+        curves: Curves | None = None,
     ) -> None:
+        """``ladder`` (a plan with successive halving): its decisions so far, and
+        ``curves`` those of the study's done keys."""
         self.execution = spec.execution
         self.store, self.pool, self.progress = store, pool, progress
         self.beat, self.stream = beat, stream
@@ -94,6 +100,10 @@ class Driver:
         self.retry: deque[Job] = deque()  # lost trials wait here for a started worker
         self.jobs: dict[str, Job] = {}  # in flight, by key
         self.failed = 0
+        # successive halving: the ladder, the curves its decisions read, the trials paused
+        # at a rung until their method's decision there
+        self.ladder, self.curves = ladder, dict(curves or {})
+        self.paused: dict[str, Job] = {}
 
     def run(self, todo: list[tuple[PlanEntry, Any]]) -> int:
         """Run ``todo`` (plan entries with their WAITING trials); return the exit code.
@@ -114,6 +124,7 @@ class Driver:
             self.progress.close()
         except KeyboardInterrupt:
             return self.stop()
+        self.leave_paused()
         if self.failed:
             print(
                 f"sweeper launch: {self.failed} trial(s) failed (see `sweeper status`); "
@@ -139,6 +150,11 @@ class Driver:
         job.attempts += 1
         self.store.set_attrs(job.trial_id, {"attempts": job.attempts})
         config = job.entry.trial_config
+        if self.ladder is not None:
+            stop, _ = self.ladder.target(job.entry.method, job.entry.config_id)
+            config = dataclasses.replace(
+                config, stop_at=stop if stop < config.total_steps else None
+            )
         if config.checkpoint_dir is not None and not is_uri(config.checkpoint_dir):
             # workers may run in another directory; a URI is the same everywhere
             config = dataclasses.replace(
@@ -176,13 +192,92 @@ class Driver:
         store_artifact(self.store, self.artifacts, job, event, self.progress)
 
     def finished(self, job: Job, event: Finished) -> None:
-        record_result(self.store, job, event.result)
+        result = event.result
+        if result.outcome == Outcome.PAUSED:
+            self.paused_at_rung(job, result)
+            return
+        if self.ladder is not None:  # a diverged trial's curve also counts at the rungs
+            entry = job.entry
+            self.curves[(entry.method, entry.config_id, entry.seed)] = (
+                list(result.steps),
+                list(result.metrics["success_rate"]),
+            )
+        record_result(self.store, job, result)
         del self.jobs[job.key]
         if not self.execution.keep_checkpoints:
             remove_checkpoint(job.entry, self.progress)
         outcome = event.result.outcome
         self.progress.set_state(job.key, outcome)
         self.progress.note(f"{job.key} {outcome}: AUC {event.result.auc:.3f}")
+
+    # ---- successive halving --------------------------------------------------------
+    def paused_at_rung(self, job: Job, result: TrialResult) -> None:
+        """A trial reached its rung: it waits there (its Optuna trial RUNNING, its
+        checkpoint kept) until its method's decision, taken as soon as the curves allow."""
+        step = result.steps[-1]
+        del self.jobs[job.key]
+        self.paused[job.key] = job
+        entry = job.entry
+        self.curves[(entry.method, entry.config_id, entry.seed)] = (
+            list(result.steps),
+            list(result.metrics["success_rate"]),
+        )
+        self.store.set_attrs(job.trial_id, {"paused_at": step, "curve": job.curve()})
+        self.progress.set_state(job.key, KeyStatus.LEFT)
+        self.progress.note(f"{job.key} paused at step {step:,}: AUC so far {result.auc:.3f}")
+        new = self.ladder.decide(self.curves)
+        if new:
+            self.store.set_study_attr(HALVING_ATTR, self.ladder.as_attr())
+            for stop, chosen in sorted(new.items()):
+                for method, configs in sorted(chosen.items()):
+                    self.progress.note(
+                        f"halving: {method} goes on from step {stop:,} with configuration(s) "
+                        f"{', '.join(map(str, configs))}"
+                    )
+        for key in sorted(self.paused):
+            self.after_rung(self.paused[key])
+
+    def after_rung(self, job: Job) -> None:
+        """Move a paused trial on as its method's decision says: on to the next rung (the
+        same Optuna trial, from its checkpoint), or PRUNED; undecided, it waits."""
+        entry, step = job.entry, max(job.points)
+        stop, dropped = self.ladder.target(entry.method, entry.config_id)
+        if stop == step and not dropped:
+            return  # undecided
+        del self.paused[job.key]
+        if stop > step:
+            job.attempts = 0  # a new run of the trial: its retries start again
+            self.jobs[job.key] = job
+            self.retry.append(job)
+            return
+        steps, success = self.curves[(entry.method, entry.config_id, entry.seed)]
+        self.store.prune(
+            job.trial_id,
+            {
+                "outcome": Outcome.PRUNED,
+                "rung": step,
+                "auc_at_rung": normalized_auc(steps, success),
+                "curve": job.curve(),
+            },
+        )
+        if not self.execution.keep_checkpoints:
+            remove_checkpoint(entry, self.progress)
+        self.progress.set_state(job.key, Outcome.PRUNED)
+        self.progress.note(f"{job.key} pruned at step {step:,}")
+
+    def leave_paused(self) -> None:
+        """Trials still paused when nothing else can run (a trial of their method failed):
+        interrupted, so the next launch resumes them at their rung from the checkpoint."""
+        for job in self.paused.values():
+            self.store.interrupt(
+                job.trial_id, f"paused at step {max(job.points):,}, its method undecided", None
+            )
+        if self.paused:
+            print(
+                f"sweeper launch: {len(self.paused)} trial(s) wait at a rung for their "
+                "method's failed trials; launching again runs those, then decides",
+                file=self.stream,
+            )
 
     def errored(self, job: Job, event: Errored) -> None:
         self.give_up(job, {"error": event.error, "traceback": event.traceback})
@@ -208,17 +303,18 @@ class Driver:
     def stop(self) -> int:
         """Ctrl-C or SIGTERM: stop the workers, mark the trials in flight interrupted."""
         self.pool.shutdown()  # stops the trials in flight at once
-        for job in self.jobs.values():
+        stopped = {**self.jobs, **self.paused}  # paused at a rung: RUNNING trials too
+        for job in stopped.values():
             # it may have been stopped while being told; then the next sync reaps it
             with contextlib.suppress(Exception):
                 self.store.interrupt(job.trial_id, "stopped by the user", None)
         self.progress.close()
         print(
-            f"\nsweeper launch: stopped; {len(self.jobs)} trial(s) in flight were interrupted; "
+            f"\nsweeper launch: stopped; {len(stopped)} trial(s) in flight were interrupted; "
             "the next launch:",
             file=self.stream,
         )
-        for key, job in sorted(self.jobs.items()):
+        for key, job in sorted(stopped.items()):
             step = checkpoint_step(job.entry)
             print(
                 f"  {key}: resumes from step {step:,} (its checkpoint)"

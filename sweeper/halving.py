@@ -28,6 +28,8 @@ import numpy as np
 
 from agent.metrics import normalized_auc
 
+#: the study attr holding a study's decisions (``Ladder.as_attr``)
+HALVING_ATTR = "halving"
 Rule = Literal["per_method", "mean_rank"]
 RULES: tuple[Rule, ...] = ("per_method", "mean_rank")
 #: (method, config_id, seed) -> (evaluation steps, success rates)
@@ -175,12 +177,92 @@ class MethodReplay:
         return self.best_auc - self.chosen_auc
 
 
+def reaches(curves: Curves, key: tuple[str, int, int], stop: int) -> bool:
+    """Whether ``key`` has a curve evaluated at env step ``stop``."""
+    return key in curves and stop in curves[key][0]
+
+
+class Ladder:
+    """Successive halving in a running study: where each configuration runs to next, and
+    the decisions taken (the study attr ``halving``: ``{rung step: {method: [config ids
+    going on]}}``), each written once and never taken again."""
+
+    def __init__(
+        self,
+        schedule: Schedule,
+        configs: Sequence[int],
+        seeds: Sequence[int],
+        methods: Sequence[str],
+        decisions: Mapping[str, Mapping[str, Sequence[int]]] | None = None,
+    ) -> None:
+        self.schedule, self.methods = schedule, sorted(methods)
+        self.configs, self.seeds = sorted(configs), sorted(seeds)
+        self.decisions: dict[int, dict[str, list[int]]] = {
+            int(stop): {m: sorted(c) for m, c in chosen.items()}
+            for stop, chosen in (decisions or {}).items()
+        }
+
+    def target(self, method: str, config: int) -> tuple[int, bool]:
+        """(the env step ``config`` of ``method`` runs to next, whether it stops there for
+        good): the first rung not yet decided for the method, else where it was dropped,
+        else the full budget."""
+        for stop in self.schedule.rungs:
+            chosen = self.decisions.get(stop, {}).get(method)
+            if chosen is None:
+                return stop, False
+            if config not in chosen:
+                return stop, True
+        return self.schedule.stops[-1], False
+
+    def alive(self, method: str, rung: int) -> list[int] | None:
+        """The configurations of ``method`` that run to rung index ``rung`` (None while an
+        earlier rung is undecided)."""
+        alive = list(self.configs)
+        for stop in self.schedule.rungs[:rung]:
+            chosen = self.decisions.get(stop, {}).get(method)
+            if chosen is None:
+                return None
+            alive = chosen
+        return alive
+
+    def decide(self, curves: Curves) -> dict[int, dict[str, list[int]]]:
+        """Take every decision the ``curves`` so far allow (a method's decision at a rung
+        once all its configurations there, every seed, have reached it; with
+        ``mean_rank``, once every method's have); return the new ones."""
+        new: dict[int, dict[str, list[int]]] = {}
+        for r, stop in enumerate(self.schedule.rungs):
+            decided = self.decisions.get(stop, {})
+            ready = {}
+            for method in self.methods:
+                alive = self.alive(method, r)
+                if method in decided or alive is None:
+                    continue
+                if all(reaches(curves, (method, c, s), stop) for c in alive for s in self.seeds):
+                    ready[method] = alive
+            if self.schedule.rule == "mean_rank" and len(ready) < len(self.methods):
+                continue  # every method's scores are needed
+            if not ready:
+                continue
+            scores = rung_scores(curves, ready, self.seeds, stop)
+            chosen = promote(scores, self.schedule.sizes[r + 1], self.schedule.rule)
+            self.decisions.setdefault(stop, {}).update(chosen)
+            new.setdefault(stop, {}).update(chosen)
+        return new
+
+    def as_attr(self) -> dict[str, dict[str, list[int]]]:
+        """The decisions as the study attr stores them (JSON: string keys)."""
+        return {
+            str(stop): dict(sorted(chosen.items()))
+            for stop, chosen in sorted(self.decisions.items())
+        }
+
+
 def replay(
     curves: Curves, rungs: Sequence[int], keep: float, rule: Rule
 ) -> dict[str, MethodReplay]:
     """Run the halving rule offline on a finished study's full curves (every (method,
     config, seed) of a complete plan, all to the same budget); ``rungs`` below the budget,
-    which is the last stop."""
+    which is the last stop. The decisions are a ``Ladder``'s, as a live study takes them."""
     methods = sorted({m for m, _, _ in curves})
     configs = sorted({c for _, c, _ in curves})
     seeds = sorted({s for _, _, s in curves})
@@ -194,23 +276,19 @@ def replay(
     if list(stops) != sorted(set(stops)) or stops[0] <= 0:
         raise ValueError(f"rungs must increase strictly below the budget {budget}; got {rungs}")
     sizes = rung_sizes(len(configs), len(stops), keep)
-
-    alive = {m: [list(configs)] for m in methods}
-    for stop, size in zip(stops[:-1], sizes[1:], strict=True):
-        current = {m: alive[m][-1] for m in methods}
-        chosen = promote(rung_scores(curves, current, seeds, stop), size, rule)
-        for m in methods:
-            alive[m].append(chosen[m])
+    ladder = Ladder(Schedule(stops, sizes, keep, rule), configs, seeds, methods)
+    ladder.decide(curves)
 
     full = rung_scores(curves, {m: configs for m in methods}, seeds, budget)
     fraction = env_steps_spent(stops, sizes, len(seeds)) / (len(configs) * len(seeds) * budget)
     result = {}
     for m in methods:
+        alive = [ladder.alive(m, r) for r in range(len(stops))]
         best_full = best(full[m], 1)[0]
-        chosen = best({c: full[m][c] for c in alive[m][-1]}, 1)[0]
+        chosen = best({c: full[m][c] for c in alive[-1]}, 1)[0]
         result[m] = MethodReplay(
             method=m,
-            alive=tuple(tuple(a) for a in alive[m]),
+            alive=tuple(tuple(a) for a in alive),
             best_full=best_full,
             chosen=chosen,
             best_auc=full[m][best_full],

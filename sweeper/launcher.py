@@ -34,11 +34,13 @@ from sweeper import random_agent
 from sweeper.driver import Driver
 from sweeper.estimate import InBackground, TrialEstimate, finished, summary_lines
 from sweeper.execution import WorkerPool, start_ray, stop_ray
+from sweeper.halving import HALVING_ATTR, Curves, Ladder
 from sweeper.plan import Plan, build_plan
 from sweeper.progress import LaunchProgress
 from sweeper.resources import cannot_reach_message, local_cpus, pool_size
 from sweeper.spec import StudySpec, load_spec
 from sweeper.storage import (
+    DONE_STATES,
     Heartbeat,
     StorageError,
     StudyBusy,
@@ -46,6 +48,7 @@ from sweeper.storage import (
     check_storage,
     check_writable,
     code_revision,
+    current_trials,
     ledger,
     package_versions,
     redact,
@@ -312,7 +315,34 @@ def _sync_and_drive(
         spec.study, without(plan, skip).keys(), spec.budget.env_steps, stream,
         estimates=estimates, workers=len(pool),
     )  # fmt: skip
-    return Driver(spec, store, pool, progress, beat, stream).run(todo)
+    ladder, curves = halving_state(plan, store)
+    return Driver(spec, store, pool, progress, beat, stream, ladder, curves).run(todo)
+
+
+def halving_state(plan: Plan, store: StudyStore) -> tuple[Ladder | None, Curves]:
+    """A plan with successive halving: its ladder, with the decisions the study holds, and
+    the curves of its done keys (what later decisions read with the new ones)."""
+    if plan.schedule is None:
+        return None, {}
+    entries = plan.entries
+    ladder = Ladder(
+        plan.schedule,
+        configs={e.config_id for e in entries},
+        seeds={e.seed for e in entries},
+        methods={e.method for e in entries},
+        decisions=store.attrs.get(HALVING_ATTR),
+    )
+    planned = {e.key: e for e in entries}
+    curves = {}
+    for key, trial in current_trials(store.trials()).items():
+        curve = trial.user_attrs.get("curve")
+        if key in planned and trial.state.name in DONE_STATES and curve:
+            entry = planned[key]
+            curves[(entry.method, entry.config_id, entry.seed)] = (
+                curve["step"],
+                curve["success_rate"],
+            )
+    return ladder, curves
 
 
 def without(plan: Plan, skip: frozenset[str]) -> Plan:

@@ -24,10 +24,11 @@ STATES: tuple[State, ...] = (
     KeyStatus.RUNNING,
     Outcome.COMPLETED,
     Outcome.DIVERGED,
+    Outcome.PRUNED,
     Outcome.FAILED,
 )
 #: the states of a key whose trial is recorded with a result
-DONE = (Outcome.COMPLETED, Outcome.DIVERGED)
+DONE = (Outcome.COMPLETED, Outcome.DIVERGED, Outcome.PRUNED)
 #: predicted seconds of work a launch must have done before its own pace corrects the
 #: estimates (before that, a slow start-up would be taken for a slow machine)
 MIN_PACED_WORK = 60.0

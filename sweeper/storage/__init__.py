@@ -31,6 +31,7 @@ from sweeper.storage.errors import (
     write_error,
 )
 from sweeper.storage.ledger import (
+    DONE_STATES,
     Counts,
     KeyStatus,
     current_numbers,
@@ -72,6 +73,7 @@ from sweeper.storage.writer import (
 )
 
 __all__ = [
+    "DONE_STATES",
     "DRIVER_STALE_SECONDS",
     "OBJECTIVE_NAME",
     "RETRY_MAX_DELAY",

@@ -61,16 +61,21 @@ class KeyStatus(StrEnum):
     LEFT = "left"
 
 
+#: the Optuna states of a key that is done
+DONE_STATES = ("COMPLETE", "PRUNED")
+
+
 def key_status(state: str | None, outcome: Any, driver_alive: bool) -> KeyStatus:
     """The ledger column of a plan key: done, running, failed or left, from its
     current trial's state name and ``outcome`` attr (``state=None``: no trial yet).
 
     A RUNNING trial counts as running only while a driver is alive; otherwise its driver
-    died and the key is left for the next launch, like an interrupted one.
+    died and the key is left for the next launch, like an interrupted one. A PRUNED trial
+    (stopped at a rung of successive halving) is done: it spent its share of the budget.
     """
     if state is None or state == "WAITING":
         return KeyStatus.LEFT
-    if state == "COMPLETE":
+    if state in DONE_STATES:
         return KeyStatus.DONE
     if state == "RUNNING":
         return KeyStatus.RUNNING if driver_alive else KeyStatus.LEFT

@@ -277,7 +277,8 @@ class StudyStore:
         created in one transaction (``add_waiting_many``). Then every trial that is WAITING
         or RUNNING but not its key's current one (a dead driver's, or an orphan of a setup
         or race cut short) is failed as ``interrupted`` with ``superseded_by`` its
-        successor, so nothing looks live or pending forever. COMPLETE keys are counted done.
+        successor, so nothing looks live or pending forever. COMPLETE and PRUNED keys are
+        counted done.
         """
         from optuna.trial import TrialState
 
@@ -291,6 +292,7 @@ class StudyStore:
             current = latest.get(entry.key)
             if current is None or current.state not in (
                 TrialState.COMPLETE,
+                TrialState.PRUNED,
                 TrialState.WAITING,
             ):
                 attrs = {
@@ -318,7 +320,7 @@ class StudyStore:
                         "its driver stopped" if running else "a newer trial of its key replaced it"
                     )
                     self.interrupt(trial._trial_id, why, current.number)
-            if current.state != TrialState.COMPLETE:
+            if current.state not in (TrialState.COMPLETE, TrialState.PRUNED):
                 todo.append((entry, current))
         for trial in by_key.get("", []):  # not ours; it would look live or pending forever
             if trial.state in live:
@@ -341,9 +343,7 @@ class StudyStore:
             self.set_study_attr(FIXED_PARAMS_ATTR, dict(sorted({**known, **fixed}.items())))
         planned = [key.split("/")[0] for key in stored.get("plan") or []]
         methods = method_choices([*planned, *(e.method for e in entries)])
-        return [
-            (*registered(e.params, e.choices, e.method, methods), attrs) for e, attrs in fresh
-        ]
+        return [(*registered(e.params, e.choices, e.method, methods), attrs) for e, attrs in fresh]
 
     def interrupt(self, trial_id: int, why: str, successor: int | None) -> None:
         """FAIL a RUNNING trial as ``interrupted`` (its key is re-run, from its checkpoint)."""
@@ -482,6 +482,14 @@ class StudyStore:
 
         self.set_attrs(trial_id, attrs)
         self.storage.set_trial_state_values(trial_id, TrialState.COMPLETE, [float(value)])
+
+    @retried
+    def prune(self, trial_id: int, attrs: Mapping[str, Any]) -> None:
+        """Set ``attrs``, then PRUNED: stopped at a rung of successive halving."""
+        from optuna.trial import TrialState
+
+        self.set_attrs(trial_id, attrs)
+        self.storage.set_trial_state_values(trial_id, TrialState.PRUNED)
 
     @retried
     def fail(self, trial_id: int, attrs: Mapping[str, Any]) -> None:
