@@ -94,6 +94,21 @@ def test_status_reads_a_spec_without_its_files_and_launch_and_confirm_refuse_it(
     assert check_files(clustered, "spec") == frozenset()
 
 
+def test_status_reads_a_study_launched_where_the_files_path_was_set(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv(VGG_WEIGHTS_ENV_VAR, "/data/vgg16-397923af.pth")
+    spec = vgg_spec(tmp_path, weights=None)
+    launched = load_spec(spec)  # its weights_path from the variable, as the launch had it
+    study = optuna.create_study(study_name="files", storage=open_storage(launched.storage_url))
+    study.set_user_attr("spec", launched.model_dump(mode="json"))  # what a launch stores
+    study.set_user_attr("plan_hash", build_plan(launched).hash)
+    monkeypatch.delenv(VGG_WEIGHTS_ENV_VAR)  # another shell: the path is not set there
+    assert status_rows(capsys, spec)["vgg"] == ["1", "0", "0", "0", "0", "1"]
+    other = tmp_path / "other.yaml"  # a spec that really is another plan is still refused
+    other.write_text(spec.read_text().replace("latent_dim: 16", "latent_dim: 32"))
+    assert cli.main(["status", str(other)]) == 2
+    assert "was launched with another plan" in capsys.readouterr().err
+
+
 def test_plan_hashes_do_not_depend_on_whether_the_file_is_there(tmp_path, monkeypatch):
     """The hash the code before this change gave (it refused a missing file unless the spec
     named a cluster, whose address is not in the hash)."""
