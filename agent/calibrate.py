@@ -96,6 +96,8 @@ def timing_encoder(config: TrialConfig, image_size: int, device: str, **override
 
 #: options that scale a learned encoder's fit (timed at one epoch on FIT_IMAGES frames)
 FIT_SCALE_OPTIONS = ("epochs", "num_images")
+#: options that change an encoder's numbers but not its work: timed once for all values
+SAME_COST_OPTIONS = ("beta", "lr", "init", "weights_path")
 #: SAC fields that change the cost of an action or an update
 ACT_FIELDS = ("hidden_sizes", "feature_dim", "num_filters")
 UPDATE_FIELDS = (*ACT_FIELDS, "batch_size", "image_pad", "actor_update_every")
@@ -125,7 +127,8 @@ class Calibration:
         step = self._part(("env", *self._env_key(config)), lambda: self._env_step(config))
         encode, setup = 0.0, 0.0
         if config.method not in TRUE_REWARD_METHODS:
-            params = {k: v for k, v in config.encoder_params.items() if k not in FIT_SCALE_OPTIONS}
+            ignored = (*FIT_SCALE_OPTIONS, *SAME_COST_OPTIONS)
+            params = {k: v for k, v in config.encoder_params.items() if k not in ignored}
             key = ("encoder", config.method, config.image_size, str(sorted(params.items())))
             encode, fit_per_image_epoch = self._part(key, lambda: self._encoder(config))
             if fit_per_image_epoch is not None:

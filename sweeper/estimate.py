@@ -17,6 +17,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from sweeper.halving import Schedule
 from sweeper.plan import PlanEntry, run_order
 from sweeper.storage import current_trials
 
@@ -199,3 +200,21 @@ def summary_lines(
             "see docs/cluster.md"
         )
     return lines
+
+
+def halving_seconds(
+    entries: Sequence[PlanEntry], estimates: dict[str, TrialEstimate], schedule: Schedule
+) -> float:
+    """Trial time of the plan under its successive halving: per method, ``sizes[r]``
+    configurations x the seeds run from stop ``r - 1`` to stop ``r``, each segment at the
+    mean predicted cost of the method's trials over it."""
+    total = 0.0
+    for method in sorted({e.method for e in entries}):
+        mine = [estimates[e.key] for e in entries if e.method == method]
+        seeds = len({e.seed for e in entries if e.method == method})
+        previous = 0
+        for stop, size in zip(schedule.stops, schedule.sizes, strict=True):
+            segment = sum(e.until(stop) - e.until(previous) for e in mine) / len(mine)
+            total += size * seeds * segment
+            previous = stop
+    return total

@@ -14,7 +14,15 @@ import sys
 import time
 from typing import TYPE_CHECKING, TextIO
 
-from sweeper.estimate import estimate_trials, finished, format_duration, summary_lines
+from sweeper.estimate import (
+    TrialEstimate,
+    estimate_trials,
+    finished,
+    format_duration,
+    halving_seconds,
+    summary_lines,
+)
+from sweeper.halving import env_steps_spent
 from sweeper.plan import Plan, build_plan
 from sweeper.storage import redact
 from sweeper.study import NoStudy, open_study
@@ -70,7 +78,34 @@ def plan_lines(
             f"{method:<{width}}  {len(entries):>6}  {len(entries) * steps:>11,}  "
             f"{finished:>4}  {format_duration(mean):>13}  {source}"
         )
+    if plan.schedule is not None:
+        lines += halving_lines(plan, estimates, len(spec.seeds))
     return lines + summary_lines(plan.entries, done, estimates, spec.execution, calibration_seconds)
+
+
+def halving_lines(plan: Plan, estimates: dict[str, TrialEstimate], seeds: int) -> list[str]:
+    """Each rung's trials per method, and what the halving spends against the full plan
+    (the table above and the lines below count every trial to the full budget)."""
+    schedule = plan.schedule
+    methods = len({e.method for e in plan.entries})
+    lines = [
+        f"halving ({schedule.rule}, keep {schedule.keep:.2f}): every method runs the same "
+        "trials to each stop:"
+    ]
+    for stop, size in zip(schedule.stops, schedule.sizes, strict=True):
+        lines.append(
+            f"  to step {stop:>11,}: {size} configuration(s) x {seeds} seed(s) per method, "
+            f"{size * seeds * methods} trials"
+        )
+    spent = env_steps_spent(schedule.stops, schedule.sizes, seeds)
+    full = len(plan.entries) // methods * schedule.stops[-1]
+    with_halving = halving_seconds(plan.entries, estimates, schedule)
+    without = sum(e.seconds for e in estimates.values())
+    lines.append(
+        f"  env steps per method: {spent:,} of {full:,} without halving ({spent / full:.0%}); "
+        f"trial time about {format_duration(with_halving)} of {format_duration(without)}"
+    )
+    return lines
 
 
 def run(spec: StudySpec, args: argparse.Namespace, stream: TextIO | None = None) -> int:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+import types
 
 import pytest
 from conftest import CI_SPEC
@@ -174,3 +175,18 @@ def test_the_launch_eta_knows_the_seed_phase_and_follows_the_pace():
     # 400 predicted seconds in 2 trials x 210 s: 1.05 x slower than predicted
     assert progress.eta(now=210.0)[1] == pytest.approx((300 + 500) * 420 / 400)
     assert progress.lines(now=210.0)[0].endswith("ETA 14 min")
+
+
+def test_halving_seconds_count_each_rung_s_trials():
+    from sweeper.estimate import TrialEstimate, halving_seconds
+    from sweeper.halving import Schedule
+
+    config = TrialConfig(total_steps=400, seed_steps=100, eval_every=100)
+    entries = [
+        types.SimpleNamespace(key=f"{m}/{c}/0", method=m, seed=0) for m in "ab" for c in range(3)
+    ]
+    # measured: 400 s a trial, spread evenly, so 1 s per env step
+    estimates = {e.key: TrialEstimate(400.0, "measured", config) for e in entries}
+    schedule = Schedule(stops=(200, 300, 400), sizes=(3, 2, 1), keep=0.5, rule="per_method")
+    # per method: 3 x 200 + 2 x 100 + 1 x 100 = 900 s, of 1200 without halving
+    assert halving_seconds(entries, estimates, schedule) == pytest.approx(2 * 900)
