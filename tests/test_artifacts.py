@@ -140,21 +140,29 @@ def test_ci_study_stores_one_video_per_trial_and_the_dashboard_serves_it(ci_stud
 
 
 # ---- a worker killed after recording --------------------------------------------------------
+def attempt_video(attempt: int) -> bytes:
+    """The GIF a trial's ``attempt`` (1 or 2) records: frames of another shade each time."""
+    frame = np.full((32, 32, 3), 40 * attempt, np.uint8)
+    frames = video.episode_frames([frame] * 3, frame, [f"attempt {attempt}"] * 3)
+    return video.encode_video(frames, "gif")
+
+
 def film_then_die(config, report=None, record=None):
     """Records its video, waits until the driver has stored it, and dies the first time;
-    records it again and finishes the second time (as a resumed trial re-runs its last
-    evaluation)."""
+    records it again (other bytes) and finishes the second time (as a resumed trial re-runs
+    its last evaluation)."""
     root = Path(config.checkpoint_dir).parents[3]  # <checkpoints>/<study>/<method>/<id>/<seed>
     marker = Path(config.checkpoint_dir) / "died"
     report(0, {"success_rate": 0.0, "final_distance": 1.0})
-    frames = video.episode_frames([np.zeros((32, 32, 3), np.uint8)] * 3, np.zeros((32, 32, 3),
-                                  np.uint8), ["a", "b", "c"])  # fmt: skip
-    record("episode-step300.gif", video.encode_video(frames, "gif"))
-    if not marker.exists():
+    first = not marker.exists()
+    record("episode-step300.gif", attempt_video(1 if first else 2))
+    if first:
         marker.parent.mkdir(parents=True, exist_ok=True)
         marker.write_text("")
-        deadline = time.monotonic() + 60
-        while not any((root.parent / "artifacts").glob("*")) and time.monotonic() < deadline:
+        deadline = time.monotonic() + 120
+        while not any((root.parent / "artifacts").glob("*")):
+            if time.monotonic() > deadline:  # the trial fails: the test sees no second attempt
+                raise RuntimeError("the first attempt's video was never stored")
             time.sleep(0.1)
         os.kill(os.getpid(), signal.SIGKILL)
     steps = (0, 100, 200, 300)
@@ -178,10 +186,12 @@ def test_a_worker_killed_after_recording_does_not_store_its_video_twice(tmp_path
     assert trial.state == TrialState.COMPLETE
     assert trial.user_attrs["attempts"] == 2 and len(trial.user_attrs["worker_deaths"]) == 1
     storage = open_storage(url, create=False)
-    (meta,) = get_all_artifact_meta(trial, storage=storage)  # stored by the first attempt
+    (meta,) = get_all_artifact_meta(trial, storage=storage)
     storage.engine.dispose()
     assert trial.user_attrs["videos"] == {"episode-step300.gif": meta.artifact_id}
     assert [p.name for p in (tmp_path / "artifacts").iterdir()] == [meta.artifact_id]
+    stored = (tmp_path / "artifacts" / meta.artifact_id).read_bytes()
+    assert stored == attempt_video(1) != attempt_video(2)  # the first attempt's, kept
     assert load_spec(tmp_path / "spec.yaml").video_steps == (300,)
 
 
