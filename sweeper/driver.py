@@ -209,6 +209,10 @@ class Driver:
         outcome = event.result.outcome
         self.progress.set_state(job.key, outcome)
         self.progress.note(f"{job.key} {outcome}: AUC {event.result.auc:.3f}")
+        from sweeper.aggregate import live  # the dashboard's figures, at a bounded cost
+
+        last = not (self.queue or self.jobs or self.retry)
+        live.after_trial(self.store, final=last, say=self.progress.note)
 
     # ---- successive halving --------------------------------------------------------
     def paused_at_rung(self, job: Job, result: TrialResult) -> None:
