@@ -226,7 +226,8 @@ class Driver:
             list(result.steps),
             list(result.metrics["success_rate"]),
         )
-        self.store.set_attrs(job.trial_id, {"paused_at": step, "curve": job.curve()})
+        attrs = {"paused_at": step, "resumed_from": result.resumed_from, "curve": job.curve()}
+        self.store.set_attrs(job.trial_id, attrs)
         self.progress.set_state(job.key, KeyStatus.LEFT)
         self.progress.note(f"{job.key} paused at step {step:,}: AUC so far {result.auc:.3f}")
         new = self.ladder.decide(self.curves)

@@ -3,7 +3,10 @@ decisions stored once, stopped trials PRUNED, promoted ones going on in their ow
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import os
+import signal
 import sys
 from pathlib import Path
 
@@ -166,3 +169,138 @@ def test_a_promoted_trial_s_curve_is_the_uninterrupted_one(tmp_path):
     assert survivor.user_attrs["curve"]["success_rate"] == list(straight.metrics["success_rate"])
     assert survivor.value == pytest.approx(straight.auc)
     assert [t.state for t in study.get_trials()].count(TrialState.PRUNED) == 1
+
+
+def _real_halving_spec(tmp_path, study):
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    path = write_ci_spec(
+        tmp_path / "spec.yaml",
+        study=study,
+        storage=url,
+        checkpoints=str(tmp_path / "ck"),
+        trials_per_method=2,
+        budget={"env_steps": 300, "seed_steps": 100, "eval_every": 100, "eval_episodes": 1},
+        random_episodes=0,
+        halving={"rungs": [200], "keep": 0.5},
+        execution={"retries": 1, "checkpoint_every": 100},
+    )
+    return path, url
+
+
+def _trials(url: str, study: str) -> list[optuna.trial.FrozenTrial]:
+    try:
+        return optuna.load_study(study_name=study, storage=open_storage(url)).get_trials()
+    except KeyError:  # not created yet
+        return []
+
+
+def check_exact_rungs(trials, plan) -> dict[str, optuna.trial.FrozenTrial]:
+    """Every key done once: per method one configuration PRUNED at the rung and one
+    COMPLETE, nothing left live; the survivors' curves are their uninterrupted runs'."""
+    from agent import train
+
+    done = [t for t in trials if t.state in (TrialState.COMPLETE, TrialState.PRUNED)]
+    by_key = {t.user_attrs["key"]: t for t in done}
+    assert sorted(by_key) == sorted(plan.keys()) and len(done) == len(by_key)
+    assert not [t for t in trials if t.state in (TrialState.RUNNING, TrialState.WAITING)]
+    for method in ("linear", "pixel"):
+        mine = [t for k, t in by_key.items() if k.startswith(f"{method}/")]
+        assert sorted(t.state for t in mine) == [TrialState.COMPLETE, TrialState.PRUNED]
+        pruned = next(t for t in mine if t.state == TrialState.PRUNED)
+        assert pruned.user_attrs["rung"] == 200
+        assert pruned.user_attrs["curve"]["step"] == [0, 100, 200]
+    entries = {e.key: e for e in plan.entries}
+    for key, trial in by_key.items():
+        if trial.state == TrialState.COMPLETE:
+            config = dataclasses.replace(entries[key].trial_config, checkpoint_dir=None)
+            straight = train(config)
+            assert trial.user_attrs["curve"]["success_rate"] == list(
+                straight.metrics["success_rate"]
+            ), key
+    return by_key
+
+
+@pytest.mark.slow
+def test_a_driver_killed_mid_rung_leaves_the_ledger_exact(tmp_path, local_ray):
+    import subprocess
+
+    from conftest import wait_until
+
+    path, url = _real_halving_spec(tmp_path, "rungkill")
+    plan = prepare(str(path))[1]
+    log = tmp_path / "driver.log"
+
+    def start():
+        return subprocess.Popen(
+            [sys.executable, "-m", "sweeper.cli", "launch", str(path), "--address", local_ray],
+            stdout=log.open("a"),
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            cwd=tmp_path,
+        )
+
+    def paused():  # a trial waits at the rung, another has not decided its method yet
+        trials = _trials(url, "rungkill")
+        waiting = [
+            t for t in trials if t.state == TrialState.RUNNING and "paused_at" in t.user_attrs
+        ]
+        return (
+            waiting
+            and HALVING_ATTR
+            not in optuna.load_study(study_name="rungkill", storage=open_storage(url)).user_attrs
+        )
+
+    first = start()
+    try:
+        wait_until(paused, 240, "a trial paused at the rung before any decision")
+        first.send_signal(signal.SIGKILL)
+        first.wait(timeout=30)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(first.pid, signal.SIGKILL)
+    second = start()
+    try:
+        assert second.wait(timeout=300) == 0, log.read_text()
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(second.pid, signal.SIGKILL)
+    trials = _trials(url, "rungkill")
+    by_key = check_exact_rungs(trials, plan)
+    # the paused trials the dead driver left went on from their checkpoint at the rung
+    reaped = [
+        t
+        for t in trials
+        if t.user_attrs.get("error") == "interrupted: its driver stopped"
+        and "paused_at" in t.user_attrs
+    ]
+    assert reaped
+    for trial in reaped:
+        assert by_key[trial.user_attrs["key"]].user_attrs["resumed_from"] == 200
+
+
+@pytest.mark.slow
+def test_a_worker_killed_at_the_rung_leaves_the_ledger_exact(tmp_path, local_ray):
+    import threading
+
+    from conftest import wait_until
+
+    path, url = _real_halving_spec(tmp_path, "rungworker")
+    spec, plan = prepare(str(path))
+    codes = []
+    driver = threading.Thread(target=lambda: codes.append(launch(spec, plan)))
+    driver.start()
+    try:
+
+        def at_rung():  # a trial evaluated at the rung: its worker is writing the pause
+            for trial in _trials(url, "rungworker"):
+                if trial.state == TrialState.RUNNING and 200 in trial.intermediate_values:
+                    return trial.user_attrs.get("worker")
+            return None
+
+        worker = wait_until(at_rung, 240, "a trial at the rung")
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(worker["pid"], signal.SIGKILL)
+    finally:
+        driver.join(timeout=300)
+    assert codes == [0]
+    check_exact_rungs(_trials(url, "rungworker"), plan)
