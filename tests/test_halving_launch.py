@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import optuna
+import pandas as pd
 import pytest
 import ray
 from conftest import write_ci_spec
@@ -130,6 +131,21 @@ def test_every_method_runs_the_same_trials_and_steps_at_every_rung(tmp_path):
     # a relaunch has nothing left: pruned keys are done
     assert launch(spec, plan, train=staged_trial) == 0
     assert len(study.get_trials()) == 12
+
+    # aggregate says what each comparison covers
+    from sweeper.aggregate import aggregate
+
+    result = aggregate(spec.storage_url, "ci", tmp_path / "agg", dashboard=False)
+    assert result.table.set_index("method")["n"].to_dict() == {"pixel": 2, "linear": 2}
+    halving = pd.read_csv(tmp_path / "agg" / "halving.csv").set_index("method")
+    # every configuration at the first rung: AUC until 200 is rate / 3, IQM of 6 trials
+    assert halving.loc["pixel", "rung_iqm"] == pytest.approx((0.1 + 0.2 + 0.2 + 0.3) / 4)
+    assert halving.loc["linear", "rung_iqm"] == pytest.approx((0.1 + 0.5 + 0.5 + 0.8) / 12)
+    assert halving["n"].tolist() == [6, 6] and halving["survivors"].tolist() == [2, 2]
+    assert halving["env_steps"].tolist() == [1800, 1800]
+    assert halving["compute_fraction"].tolist() == [0.75, 0.75]
+    report = (tmp_path / "agg" / "report.md").read_text()
+    assert "full-budget comparison of each method's surviving configurations" in report
 
 
 def test_mean_rank_keeps_the_same_configurations_for_every_method(tmp_path):

@@ -10,7 +10,9 @@ tidy frame with one row per (trial, evaluation step), then writes under ``--out`
 - ``curves.png`` (a panel per metric: mean ± std per method), ``trials.png`` (a panel per
   metric and method, a line per trial coloured by its AUC), ``auc.png`` (trial AUCs, IQM
   and its 95 % CI);
-- ``report.md``, which embeds the figures;
+- ``report.md``, which embeds the figures; for a study run with successive halving also
+  ``halving.csv`` and its section (``sweeper.aggregate.halving``: the first-rung comparison
+  over every configuration, the compute spent);
 
 and saves the curves, the AUC figure and the table (a section of the study note) into the
 study, where optuna-dashboard shows them (``--no-dashboard`` skips this, the only write).
@@ -56,6 +58,7 @@ from sweeper.aggregate.frame import (
     study_info,
     trial_rows,
 )
+from sweeper.aggregate.halving import halving_markdown, halving_table
 from sweeper.aggregate.pictures import report_pictures
 from sweeper.aggregate.report import confirm_markdown, report_markdown, table_markdown
 from sweeper.aggregate.tables import (
@@ -237,6 +240,11 @@ def aggregate(
         files = write_tables(frame, tables, out)
         figures = draw_figures(search, tables, out)
         text = report_markdown(search, tables, alive)
+        halving = halving_table(search, seed=seed)
+        if halving is not None:  # successive halving: what each comparison covers
+            halving.to_csv(out / "halving.csv", index=False)
+            files.append(out / "halving.csv")
+            text += "\n" + halving_markdown(halving) + "\n"
         if len(confirm):
             confirm.to_csv(out / "confirm_table.csv", index=False)
             files.append(out / "confirm_table.csv")
