@@ -38,6 +38,7 @@ from sweeper.execution import (
     Reported,
     Started,
     WorkerPool,
+    WorkersCannotStart,
 )
 from sweeper.halving import HALVING_ATTR, Curves, Ladder
 from sweeper.plan import PlanEntry, run_order
@@ -124,6 +125,10 @@ class Driver:
             self.progress.close()
         except KeyboardInterrupt:
             return self.stop()
+        except WorkersCannotStart as e:
+            self.stop()
+            print(f"sweeper launch: {e}", file=self.stream)
+            return 2
         self.leave_paused()
         if self.failed:
             print(

@@ -303,6 +303,13 @@ class TrialWorker:
             self._events.append((token, step, dict(payload)))
 
 
+def _last_error_line(error: BaseException) -> str:
+    """The line of a Ray error that names the cause (``ModuleNotFoundError: ...``)."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    causes = [line for line in lines if "Error:" in line and not line.startswith("ray.")]
+    return (causes or lines or [type(error).__name__])[-1]
+
+
 @dataclass(frozen=True)
 class Started:
     token: str
@@ -363,6 +370,11 @@ class _Slot:
         return None
 
 
+class WorkersCannotStart(RuntimeError):
+    """The worker actors fail to start, again and again (``WorkerPool.START_FAILURES`` in
+    a row with none started): an import error in the workers, say, which no retry cures."""
+
+
 class WorkerPool:
     """``size`` actors with ``cpus``/``gpus`` each; one trial per actor at a time.
 
@@ -370,8 +382,11 @@ class WorkerPool:
     actor may wait for resources indefinitely, and a trial handed to it would wait too.
     ``train`` and ``env`` are passed to each ``TrialWorker``. A busy actor that stalls
     (``_Slot.stalled`` with ``stall_timeout``) is killed and reported ``Lost``, as Ray
-    never notices a stopped process.
+    never notices a stopped process. An actor that dies while starting is replaced; after
+    ``START_FAILURES`` such deaths in a row, ``idle`` raises ``WorkersCannotStart``.
     """
+
+    START_FAILURES = 5
 
     def __init__(
         self,
@@ -389,6 +404,7 @@ class WorkerPool:
             "max_concurrency": 2,  # run + drain
         }
         self._train, self._env = train, env
+        self._start_failures = 0  # actors that died starting, since one last started
         self._slots = [self._new_slot() for _ in range(size)]
 
     def _new_slot(self) -> _Slot:
@@ -414,10 +430,17 @@ class WorkerPool:
             return False
         try:
             ray.get(slot.ready_ref)
-        except ray.exceptions.RayError:
+        except ray.exceptions.RayError as e:
             ray.kill(slot.actor)
+            self._start_failures += 1
+            if self._start_failures >= self.START_FAILURES:
+                raise WorkersCannotStart(
+                    f"the trial workers failed to start {self._start_failures} times in a "
+                    f"row; the last: {_last_error_line(e)}"
+                ) from e
             self._slots[index] = self._new_slot()
             return False
+        self._start_failures = 0
         slot.ready_ref = None
         return True
 
