@@ -1,8 +1,8 @@
 """What one trial costs on this machine, measured in seconds per unit of its work.
 
-A trial is setup (its reward encoder built and, when it learns, fitted on random-policy
-frames; the reward scale measured), ``seed_steps`` env steps with random actions, the
-remaining steps each with the policy's action and ``updates_per_step`` SAC updates, and
+A trial is setup (its two envs built; its reward encoder built and, when it learns, fitted
+on random-policy frames; the reward scale measured), ``seed_steps`` env steps with random
+actions, the remaining steps each with the policy's action and ``updates_per_step`` SAC updates, and
 ``eval_episodes`` episodes at every grid step. A ``Calibration`` times each part (``per_call``)
 on the trial's own env, encoder and SAC networks with random data, once per distinct set of
 the fields the part depends on (an env step per env and image size, an update per
@@ -111,6 +111,7 @@ class Calibration:
         self.min_calls, self.seconds = min_calls, seconds
         self._parts: dict[tuple, Any] = {}
         self._envs: dict[tuple, Any] = {}
+        self._built: dict[tuple, float] = {}  # seconds to build and reset each env
         self._rng = np.random.default_rng(0)
 
     def __enter__(self) -> Calibration:
@@ -125,7 +126,8 @@ class Calibration:
         """The costs of ``config``'s trial parts (see the module docstring)."""
         torch.set_num_threads(config.threads)
         step = self._part(("env", *self._env_key(config)), lambda: self._env_step(config))
-        encode, setup = 0.0, 0.0
+        # a trial builds two envs (training, evaluation)
+        encode, setup = 0.0, 2 * self._built[self._env_key(config)]
         if config.method not in TRUE_REWARD_METHODS:
             ignored = (*FIT_SCALE_OPTIONS, *SAME_COST_OPTIONS)
             params = {k: v for k, v in config.encoder_params.items() if k not in ignored}
@@ -163,8 +165,10 @@ class Calibration:
         key = self._env_key(config)
         if key not in self._envs:
             make = dict(image_size=config.image_size, obs_mode=key[2], **config.env_kwargs)
+            start = time.perf_counter()
             self._envs[key] = make_env(config.env, **make)
             self._envs[key].reset(seed=0)
+            self._built[key] = time.perf_counter() - start
         return self._envs[key]
 
     def _env_step(self, config: TrialConfig) -> float:

@@ -90,8 +90,8 @@ def test_calibration_times_each_part_once_and_predicts_a_trial():
         parts = dict(calibration._parts)
         assert calibration.costs(pixel) == costs and calibration._parts == parts  # cached
         vae_costs = calibration.costs(vae)
-    assert costs.setup == 0 and 0 < costs.seed_step < costs.train_step
-    assert vae_costs.setup > 0  # the fit, scaled to 300 images and 2 epochs
+    assert 0 < costs.seed_step < costs.train_step
+    assert vae_costs.setup > costs.setup > 0  # the envs built; then the fit, scaled
     # the prediction is within a factor of 3 of the trial's measured wall time
     result = train(pixel)
     assert costs.seconds(pixel) / 3 < result.seconds < 3 * costs.seconds(pixel)
