@@ -86,7 +86,7 @@ def test_dashboard_importance_and_params_show_what_varies_and_the_method(ci_stud
         importances = get_json(f"{base}/api/studies/{study_id}/param_importances")
     assert {p["name"] for p in detail["union_search_space"]} == {"lr", "method"}
     method = next(p for p in detail["union_search_space"] if p["name"] == "method")
-    assert [c["value"] for c in method["distribution"]["choices"]] == ["linear", "pixel"]
+    assert sorted(c["value"] for c in method["distribution"]["choices"]) == ["linear", "pixel"]
     shown = {i["name"] for i in importances["param_importances"][0]}
     assert shown == {"lr", "method"}
     attrs = {a["key"]: json.loads(a["value"]) for a in detail["user_attrs"]

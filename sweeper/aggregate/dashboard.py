@@ -387,7 +387,10 @@ def save_to_dashboard(storage, frame: pd.DataFrame, tables: Tables) -> None:
         [
             NOTE_BEGIN,
             "",
-            "## Method comparison (sweeper aggregate)",
+            "## Method comparison",
+            "",
+            "*Written by `sweeper launch` as trials finish and by `sweeper aggregate`; this "
+            "section is rewritten each time, text outside it is kept.*",
             "",
             ranking_sentence(tables.table, tables.improvement, random_success(frame)),
             "",
