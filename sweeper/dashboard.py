@@ -1,8 +1,9 @@
 """``sweeper dashboard SPEC``: serve optuna-dashboard on the study's storage.
 
 The server reads the same database the driver writes (SQLite in WAL mode, so a live study
-can be watched), and shows what ``sweeper aggregate`` saved into the study: the per-method
-curves and AUC figures, and the comparison table in the study note; each trial's page
+can be watched), and shows what the driver (while a launch runs, ``sweeper.aggregate.live``)
+and ``sweeper aggregate`` saved into the study: the comparison table and the per-method
+curves and AUC figures, and the comparison in the study note; each trial's page
 plays its episode videos (the study's artifact store, ``sweeper.artifacts``). It binds to
 127.0.0.1 by default: the dashboard can edit notes and delete studies, so expose it
 beyond this machine only on purpose (``--host 0.0.0.0``). Ctrl-C or SIGTERM stops it.
