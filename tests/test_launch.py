@@ -54,11 +54,12 @@ def check_ci_study(study: optuna.Study) -> None:
         assert (attrs["config_id"], attrs["seed"]) == (0, 0)
         assert attrs["plan_hash"] == study.user_attrs["plan_hash"]
         assert attrs["worker"]["pid"] > 0
-        assert "hidden_sizes" in trial.params
-    assert (
-        "linear.latent_dim" in next(t for t in trials if t.user_attrs["method"] == "linear").params
-    )
+        # the params that vary are trial params, with the method; constants are study attrs
+        assert set(trial.params) == {"lr", "method"}
+        assert trial.params["method"] == attrs["method"]
     study_attrs = study.user_attrs
+    fixed = study_attrs["fixed_params"]
+    assert fixed["hidden_sizes"] == "64x64" and fixed["linear.latent_dim"] == 16
     assert study_attrs["plan"] == ["linear/0/0", "pixel/0/0"]
     assert study_attrs["spec"]["study"] == "ci"
     assert study_attrs["env"] == "point_reach"
@@ -126,8 +127,9 @@ def test_a_named_variant_runs_beside_its_encoder_to_aggregate_and_confirm(
     assert sorted(trials) == ["conv/0/0", "conv_pytorch_init/0/0"]
     base, variant = trials["conv/0/0"], trials["conv_pytorch_init/0/0"]
     assert variant.user_attrs["method"] == "conv_pytorch_init"
-    assert variant.params["conv_pytorch_init.init"] == "pytorch"
-    assert base.params["conv.init"] == "drq"
+    fixed = load("sqlite:///runs/ci/study.db").user_attrs["fixed_params"]
+    assert fixed["conv_pytorch_init.init"] == "pytorch" and fixed["conv.init"] == "drq"
+    assert variant.params["method"] == "conv_pytorch_init" and base.params["method"] == "conv"
     for trial in (base, variant):
         assert trial.state == TrialState.COMPLETE and trial.user_attrs["curve"]["step"] == GRID
     # the same SAC configuration and seed, another reward encoder: another reward scale
