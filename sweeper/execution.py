@@ -5,7 +5,8 @@ signature) and buffers what the trial reports and records (episode videos, as by
 driver drains the buffers with small remote calls and learns of finished, failed and
 lost trials through ``WorkerPool.poll``. An exception inside a trial comes back as a value
 (message and traceback); a worker that dies (killed, out of memory, node lost) comes back
-as a ``Lost`` event, and the pool replaces the actor.
+as a ``Lost`` event, and the pool replaces the actor. Its one job: running trials on Ray,
+with Ray's own start, stop and output (``start_ray``, ``stop_ray``) beside it.
 """
 
 from __future__ import annotations

@@ -25,7 +25,7 @@ from sweeper.estimate import (
 from sweeper.halving import env_steps_spent
 from sweeper.plan import Plan, build_plan
 from sweeper.storage import redact
-from sweeper.study import NoStudy, open_study
+from sweeper.study import NoStudy, open_study, stored_files
 
 if TYPE_CHECKING:
     from sweeper.spec import StudySpec
@@ -113,6 +113,7 @@ def run(spec: StudySpec, args: argparse.Namespace, stream: TextIO | None = None)
     cannot be read or was launched with another plan."""
     stream = sys.stdout if stream is None else stream
     try:
+        spec = stored_files(spec)  # a file path the study was launched with
         plan = build_plan(spec)
         done, measured = study_finished(spec, plan)
     except ValueError as e:  # StorageError, a plan the spec cannot give

@@ -1,8 +1,9 @@
 """Study specs: the schema of a spec, and reading a YAML file into a frozen ``StudySpec``.
 
 This module's one job is the schema: the pydantic models of a spec (``EnvSpec``,
-``SACSpace``, ``Budget``, ``Execution``, ``ConfirmSpec``, ``StudySpec``), documented field
-by field below (and in ``studies/*.yaml``), with the checks that tie fields together.
+``SACSpace``, ``Budget``, ``Execution``, ``ConfirmSpec``, ``Halving``, ``StudySpec``),
+documented field by field below (and in ``studies/*.yaml``), with the checks that tie
+fields together.
 ``load_spec(path)`` reads and validates a spec; any problem raises ``SpecError`` whose
 message names the dotted field (``sac.lr[1]``, ``methods.vae.beta``), what is allowed, and
 a close name for a typo.

@@ -13,9 +13,8 @@ from typing import TYPE_CHECKING, TextIO
 
 from agent.config import Outcome
 from sweeper.plan import build_plan
-from sweeper.spec import parse_spec
-from sweeper.storage import STORAGE_GRACE, StorageError, current_trials, ledger, redact
-from sweeper.study import NoStudy, open_study
+from sweeper.storage import STORAGE_GRACE, current_trials, ledger, redact
+from sweeper.study import NoStudy, open_study, stored_files
 
 if TYPE_CHECKING:
     from sweeper.spec import StudySpec
@@ -40,29 +39,6 @@ def run(spec: StudySpec, args: argparse.Namespace, stream: TextIO | None = None)
     print(f"study {spec.study!r} in {redact(spec.storage_url)}", file=stream)
     print("\n".join(lines), file=stream)
     return 0
-
-
-def stored_files(spec: StudySpec) -> StudySpec:
-    """``spec`` with the file options it gives no value here (vgg's ``weights_path`` in a
-    shell without ``$GCRL_VGG16_WEIGHTS``) taken from the study's stored spec: the path is
-    part of the plan and its hash, so status reads a study launched where it was set. No
-    study, or none stored: ``spec`` as it is."""
-    unset = [item for item in spec.missing_files() if item.unset]
-    if not unset:
-        return spec
-    try:
-        grace = spec.execution.storage_grace
-        with open_study(spec.storage_url, spec.study, write=False, grace=grace) as store:
-            stored = (store.attrs.get("spec") or {}).get("methods") or {}
-    except StorageError:  # NoStudy included: then the plan's hash is not checked
-        return spec
-    data = spec.model_dump(mode="json")
-    for item in unset:
-        _, method, name = item.at.split(".")
-        value = (stored.get(method) or {}).get(name)
-        if value is not None:
-            data["methods"][method][name] = value
-    return parse_spec(data, source="the study's stored spec")
 
 
 def status_lines(

@@ -30,6 +30,8 @@ if TYPE_CHECKING:  # pandas and sqlalchemy are imported where used: `sweeper --h
     import pandas as pd
     from sqlalchemy.engine import Connection
 
+    from sweeper.spec import StudySpec
+
 #: how a study comes to be, for the messages of ``NoStudy``
 CREATE_HINT = "launch the study first (`sweeper launch SPEC`)"
 
@@ -213,3 +215,29 @@ def _open(url: str, *, read_only: bool) -> Any:
         return open_storage(url, create=False, read_only=read_only)
     except (SQLAlchemyError, optuna.exceptions.StorageInternalError) as e:
         raise database_error("cannot read", url, e) from None
+
+
+def stored_files(spec: StudySpec) -> StudySpec:
+    """For readers that check the plan (``status``, ``plan``): ``spec`` with the file
+    options it gives no value here (vgg's ``weights_path`` in a shell without
+    ``$GCRL_VGG16_WEIGHTS``) taken from the study's stored spec: the path is part of the
+    plan and its hash, so a reader takes a study launched where it was set. No study, or
+    none stored: ``spec`` as it is."""
+    unset = [item for item in spec.missing_files() if item.unset]
+    if not unset:
+        return spec
+    try:
+        grace = spec.execution.storage_grace
+        with open_study(spec.storage_url, spec.study, write=False, grace=grace) as store:
+            stored = (store.attrs.get("spec") or {}).get("methods") or {}
+    except StorageError:  # NoStudy included: then the plan's hash is not checked
+        return spec
+    data = spec.model_dump(mode="json")
+    for item in unset:
+        _, method, name = item.at.split(".")
+        value = (stored.get(method) or {}).get(name)
+        if value is not None:
+            data["methods"][method][name] = value
+    from sweeper.spec import parse_spec
+
+    return parse_spec(data, source="the study's stored spec")

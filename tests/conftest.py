@@ -69,6 +69,28 @@ def wait_until(
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
+def assert_uninterrupted_curve(trial: Any, config: TrialConfig) -> None:
+    """``trial``'s recorded curve, AUC and intermediate values are those of ``config`` run
+    straight through (no checkpoints): what a resumed or paused trial must give on CPU."""
+    import dataclasses
+
+    import torch
+
+    from agent import train
+
+    torch.set_num_threads(1)
+    reference = train(dataclasses.replace(config, checkpoint_dir=None, stop_at=None))
+    curve = trial.user_attrs["curve"]
+    assert curve["step"] == list(reference.steps)
+    for name, values in reference.metrics.items():
+        assert curve[name] == list(values), name
+    if trial.value is not None:  # a PRUNED trial keeps no value
+        assert trial.value == reference.auc
+    assert trial.intermediate_values == dict(
+        zip(reference.steps, reference.metrics["success_rate"], strict=True)
+    )
+
+
 @dataclass(frozen=True)
 class CIStudy:
     """The CI study after ``sweeper launch``: run the CLI from ``workdir`` with

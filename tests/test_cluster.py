@@ -171,21 +171,12 @@ def test_study_survives_losing_a_worker_node(tmp_path, postgres, cluster):
     assert node_of[lost_pid] == gone and node_of[rerun_pid] in set(nodes) - {gone}  # another node
 
     # the resumed curve is the curve of the same trial run without interruption
-    import dataclasses
+    from conftest import assert_uninterrupted_curve
 
-    import torch
-
-    from agent import train
     from sweeper.launcher import prepare
 
     entry = next(e for e in prepare(str(spec_path), storage=PG_URL)[1].entries if e.key == lost_key)
-    torch.set_num_threads(1)
-    reference = train(dataclasses.replace(entry.trial_config, checkpoint_dir=None))
-    curve = lost.user_attrs["curve"]
-    assert curve["step"] == list(reference.steps)
-    for name, values in reference.metrics.items():
-        assert curve[name] == list(values), name
-    assert lost.value == reference.auc
+    assert_uninterrupted_curve(lost, entry.trial_config)
     for trial in complete:
         if trial is not lost:
             assert trial.user_attrs["attempts"] == 1

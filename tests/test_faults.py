@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import errno
 import functools
 import io
@@ -22,8 +21,7 @@ import psycopg
 import pytest
 import ray
 import sqlalchemy
-import torch
-from conftest import wait_until, write_ci_spec
+from conftest import assert_uninterrupted_curve, wait_until, write_ci_spec
 from optuna.trial import TrialState
 
 from agent import train
@@ -109,16 +107,7 @@ def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path, local_
     assert retried.user_attrs["resumed_from"] >= 100
     assert by_key[plan.entries[1].key].user_attrs["attempts"] == 1
 
-    torch.set_num_threads(1)
-    reference = train(dataclasses.replace(victim.trial_config, checkpoint_dir=None))
-    curve = retried.user_attrs["curve"]
-    assert curve["step"] == list(reference.steps)
-    for name, values in reference.metrics.items():
-        assert curve[name] == list(values), name
-    assert retried.value == reference.auc
-    assert retried.intermediate_values == dict(
-        zip(reference.steps, reference.metrics["success_rate"], strict=True)
-    )
+    assert_uninterrupted_curve(retried, victim.trial_config)
 
 
 def start_driver(spec: Path, address: str, log: Path) -> subprocess.Popen:
@@ -326,7 +315,9 @@ def steady(config, report=None):
         if resumed_from is None or step > resumed_from:
             time.sleep(1.5)
             marker.parent.mkdir(parents=True, exist_ok=True)
-            marker.write_text(str(step))
+            # atomically, as a real checkpoint: a worker stopped mid-write leaves the old one
+            marker.with_suffix(".tmp").write_text(str(step))
+            marker.with_suffix(".tmp").replace(marker)
         report(step, {"success_rate": 0.0, "final_distance": 1.0})
     metrics = {"success_rate": (0.0,) * len(steps), "final_distance": (1.0,) * len(steps)}
     return TrialResult(steps=tuple(steps), metrics=metrics, auc=0.0, resumed_from=resumed_from)
@@ -606,21 +597,27 @@ class FailingFile(io.FileIO):
         return super().write(data)
 
 
-def full_after_first_checkpoint(config, report=None, record=None):
-    """agent.train on a checkpoint disk that fills up after the first checkpoint."""
-    from agent import storage_io, train
+def failing_after_first_checkpoint(config, report=None, record=None, code=errno.ENOSPC):
+    """agent.train on a checkpoint directory that fills up (ENOSPC: mid-write) or turns
+    read-only (EROFS: the file cannot be opened for writing) after the first checkpoint."""
+    from agent import storage_io
 
     opened = []
 
-    class FillingDisk:  # the os module, as agent.storage_io sees it
+    class FailingDisk:  # the os module, as agent.storage_io sees it
         def __getattr__(self, name):
             return getattr(os, name)
 
         def fdopen(self, fd, mode):
             opened.append(fd)
-            return os.fdopen(fd, mode) if len(opened) == 1 else FailingFile(fd, "wb")
+            if len(opened) == 1:
+                return os.fdopen(fd, mode)
+            if code == errno.ENOSPC:
+                return FailingFile(fd, "wb")
+            os.close(fd)
+            raise OSError(code, os.strerror(code))
 
-    storage_io.os = FillingDisk()
+    storage_io.os = FailingDisk()
     try:
         return train(config, report=report)
     finally:
@@ -628,22 +625,29 @@ def full_after_first_checkpoint(config, report=None, record=None):
 
 
 @pytest.mark.slow
-def test_a_full_checkpoint_disk_fails_the_trial_with_one_line_and_a_relaunch_resumes(
-    tmp_path, local_ray
+@pytest.mark.parametrize(
+    ("code", "problem"),
+    [
+        (errno.ENOSPC, "is full (No space left on device): free space"),
+        (errno.EROFS, "is read-only (Read-only file system): make it writable"),
+    ],
+)
+def test_a_full_or_read_only_checkpoint_dir_fails_the_trial_and_a_relaunch_resumes(
+    tmp_path, local_ray, code, problem
 ):
     """A real trial (300 steps, checkpoints at 100 and 200) whose second checkpoint meets a
-    full disk: its error is the one line, the first checkpoint is kept with no partial file
-    beside it, and the next launch resumes from it."""
+    full or read-only directory: its error is the one line, the first checkpoint is kept
+    with no partial file beside it, and the next launch resumes from it."""
     spec, plan = prepare(str(one_trial_spec(tmp_path, "ckfull")))
     stream = io.StringIO()
-    assert launch(spec, plan, train=full_after_first_checkpoint, stream=stream) == 1
+    trial = functools.partial(failing_after_first_checkpoint, code=code)
+    assert launch(spec, plan, train=trial, stream=stream) == 1
     (failed,) = stored_trials(spec.storage_url, "ckfull")
     assert failed.state == TrialState.FAIL and failed.user_attrs["outcome"] == "failed"
     (kept,) = (tmp_path / "checkpoints").glob("*/pixel/0/0/*")  # nothing else in the folder
     assert kept.name == "checkpoint.pt"
     assert failed.user_attrs["error"] == (
-        f"OSError: checkpoint directory {kept.parent} is full (No space left on device): "
-        "free space or set checkpoints: in the spec"
+        f"OSError: checkpoint directory {kept.parent} {problem} or set checkpoints: in the spec"
     )
     assert sorted(failed.intermediate_values) == [0, 100, 200]  # what it reported first
 

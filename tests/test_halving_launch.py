@@ -4,7 +4,6 @@ decisions stored once, stopped trials PRUNED, promoted ones going on in their ow
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import os
 import signal
 import sys
@@ -14,7 +13,7 @@ import optuna
 import pandas as pd
 import pytest
 import ray
-from conftest import write_ci_spec
+from conftest import assert_uninterrupted_curve, write_ci_spec
 from optuna.trial import TrialState
 
 from agent.config import Outcome, TrialResult
@@ -162,32 +161,20 @@ def test_mean_rank_keeps_the_same_configurations_for_every_method(tmp_path):
 def test_a_promoted_trial_s_curve_is_the_uninterrupted_one(tmp_path):
     """Real trials (agent.train) on point_reach: the survivor paused at each rung and went
     on from its checkpoint; its curve equals the same key run straight through."""
-    from agent import train
-
-    url = f"sqlite:///{tmp_path / 'study.db'}"
-    path = write_ci_spec(
-        tmp_path / "ci.yaml",
-        storage=url,
-        checkpoints=str(tmp_path / "ck"),
-        trials_per_method=2,
-        methods={"linear": {"latent_dim": 16}},
-        budget={"env_steps": 300, "seed_steps": 100, "eval_every": 100, "eval_episodes": 1},
-        random_episodes=0,
-        halving={"rungs": [200], "keep": 0.5},
-    )
+    path, url = _real_halving_spec(tmp_path, "ci", methods={"linear": {"latent_dim": 16}})
     spec, plan = prepare(str(path))
     assert launch(spec, plan) == 0
     study = optuna.load_study(study_name="ci", storage=open_storage(url))
     survivor = next(t for t in study.get_trials() if t.state == TrialState.COMPLETE)
     assert survivor.user_attrs["resumed_from"] == 200  # it paused at the rung
     entry = next(e for e in plan.entries if e.key == survivor.user_attrs["key"])
-    straight = train(dataclasses.replace(entry.trial_config, checkpoint_dir=None))
-    assert survivor.user_attrs["curve"]["success_rate"] == list(straight.metrics["success_rate"])
-    assert survivor.value == pytest.approx(straight.auc)
+    assert_uninterrupted_curve(survivor, entry.trial_config)
     assert [t.state for t in study.get_trials()].count(TrialState.PRUNED) == 1
 
 
-def _real_halving_spec(tmp_path, study):
+def _real_halving_spec(tmp_path, study, **changes):
+    """The CI study, 2 configurations of 300 steps halved at 200 (one goes on), real
+    trials; ``changes`` on top."""
     url = f"sqlite:///{tmp_path / 'study.db'}"
     path = write_ci_spec(
         tmp_path / "spec.yaml",
@@ -199,6 +186,7 @@ def _real_halving_spec(tmp_path, study):
         random_episodes=0,
         halving={"rungs": [200], "keep": 0.5},
         execution={"retries": 1, "checkpoint_every": 100},
+        **changes,
     )
     return path, url
 
@@ -213,8 +201,6 @@ def _trials(url: str, study: str) -> list[optuna.trial.FrozenTrial]:
 def check_exact_rungs(trials, plan) -> dict[str, optuna.trial.FrozenTrial]:
     """Every key done once: per method one configuration PRUNED at the rung and one
     COMPLETE, nothing left live; the survivors' curves are their uninterrupted runs'."""
-    from agent import train
-
     done = [t for t in trials if t.state in (TrialState.COMPLETE, TrialState.PRUNED)]
     by_key = {t.user_attrs["key"]: t for t in done}
     assert sorted(by_key) == sorted(plan.keys()) and len(done) == len(by_key)
@@ -228,11 +214,7 @@ def check_exact_rungs(trials, plan) -> dict[str, optuna.trial.FrozenTrial]:
     entries = {e.key: e for e in plan.entries}
     for key, trial in by_key.items():
         if trial.state == TrialState.COMPLETE:
-            config = dataclasses.replace(entries[key].trial_config, checkpoint_dir=None)
-            straight = train(config)
-            assert trial.user_attrs["curve"]["success_rate"] == list(
-                straight.metrics["success_rate"]
-            ), key
+            assert_uninterrupted_curve(trial, entries[key].trial_config)
     return by_key
 
 
