@@ -202,11 +202,7 @@ class Driver:
             self.paused_at_rung(job, result)
             return
         if self.ladder is not None:  # a diverged trial's curve also counts at the rungs
-            entry = job.entry
-            self.curves[(entry.method, entry.config_id, entry.seed)] = (
-                list(result.steps),
-                list(result.metrics["success_rate"]),
-            )
+            self.remember_curve(job.entry, result)
         record_result(self.store, job, result)
         del self.jobs[job.key]
         if not self.execution.keep_checkpoints:
@@ -220,17 +216,18 @@ class Driver:
         live.after_trial(self.store, final=last, say=self.progress.note)
 
     # ---- successive halving --------------------------------------------------------
+    def remember_curve(self, entry: PlanEntry, result: TrialResult) -> None:
+        """Keep a trial's success curve so far for the ladder's decisions."""
+        key = (entry.method, entry.config_id, entry.seed)
+        self.curves[key] = (list(result.steps), list(result.metrics["success_rate"]))
+
     def paused_at_rung(self, job: Job, result: TrialResult) -> None:
         """A trial reached its rung: it waits there (its Optuna trial RUNNING, its
         checkpoint kept) until its method's decision, taken as soon as the curves allow."""
         step = result.steps[-1]
         del self.jobs[job.key]
         self.paused[job.key] = job
-        entry = job.entry
-        self.curves[(entry.method, entry.config_id, entry.seed)] = (
-            list(result.steps),
-            list(result.metrics["success_rate"]),
-        )
+        self.remember_curve(job.entry, result)
         attrs = {"paused_at": step, "resumed_from": result.resumed_from, "curve": job.curve()}
         self.store.set_attrs(job.trial_id, attrs)
         self.progress.set_state(job.key, KeyStatus.LEFT)
