@@ -17,6 +17,7 @@ trial on this machine, benchmarks/bench_video.py).
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -64,10 +65,20 @@ class TrialCosts:
         )
 
 
-def per_call(fn: Callable[[], Any], min_calls: int = 3, seconds: float = 0.5) -> float:
+class Stopped(Exception):
+    """The calibration was told to stop (``Calibration(stop=...)``) before it finished."""
+
+
+def per_call(
+    fn: Callable[[], Any],
+    min_calls: int = 3,
+    seconds: float = 0.5,
+    stop: threading.Event | None = None,
+) -> float:
     """Mean seconds of one call of ``fn``: a warm-up call, then at least ``min_calls``
     calls and more until ``seconds`` have passed. A warm-up slower than ``seconds`` is
-    the answer itself (a slow call's start-up cost is a small part of it)."""
+    the answer itself (a slow call's start-up cost is a small part of it). Raises
+    ``Stopped`` between calls once ``stop`` is set."""
     start = time.perf_counter()
     fn()
     first = time.perf_counter() - start
@@ -75,6 +86,8 @@ def per_call(fn: Callable[[], Any], min_calls: int = 3, seconds: float = 0.5) ->
         return first
     calls, start = 0, time.perf_counter()
     while calls < min_calls or time.perf_counter() - start < seconds:
+        if stop is not None and stop.is_set():
+            raise Stopped
         fn()
         calls += 1
     return (time.perf_counter() - start) / calls
@@ -105,10 +118,16 @@ UPDATE_FIELDS = (*ACT_FIELDS, "batch_size", "image_pad", "actor_update_every")
 
 class Calibration:
     """Measured trial costs on this machine; each part is timed once per distinct set of
-    the fields it depends on. Use as a context manager (it keeps the envs it opened)."""
+    the fields it depends on. Use as a context manager (it keeps the envs it opened).
 
-    def __init__(self, min_calls: int = 3, seconds: float = 0.5) -> None:
-        self.min_calls, self.seconds = min_calls, seconds
+    ``stop``: once set, the calibration raises ``Stopped`` at its next timed call, so a
+    thread calibrating can be ended and joined (a thread still in torch or MuJoCo when
+    the process exits aborts it: "terminate called without an active exception")."""
+
+    def __init__(
+        self, min_calls: int = 3, seconds: float = 0.5, stop: threading.Event | None = None
+    ) -> None:
+        self.min_calls, self.seconds, self.stop = min_calls, seconds, stop
         self._parts: dict[tuple, Any] = {}
         self._envs: dict[tuple, Any] = {}
         self._built: dict[tuple, float] = {}  # seconds to build and reset each env
@@ -124,6 +143,8 @@ class Calibration:
 
     def costs(self, config: TrialConfig) -> TrialCosts:
         """The costs of ``config``'s trial parts (see the module docstring)."""
+        if self.stop is not None and self.stop.is_set():
+            raise Stopped
         torch.set_num_threads(config.threads)
         step = self._part(("env", *self._env_key(config)), lambda: self._env_step(config))
         # a trial builds two envs (training, evaluation)
@@ -154,7 +175,7 @@ class Calibration:
         return self._parts[key]
 
     def _time(self, fn: Callable[[], Any]) -> float:
-        return per_call(fn, self.min_calls, self.seconds)
+        return per_call(fn, self.min_calls, self.seconds, self.stop)
 
     @staticmethod
     def _env_key(config: TrialConfig) -> tuple:

@@ -112,10 +112,14 @@ def finished(
 
 
 def estimate_trials(
-    entries: Sequence[PlanEntry], measured: dict[str, float], seconds_per_part: float = 0.5
+    entries: Sequence[PlanEntry],
+    measured: dict[str, float],
+    seconds_per_part: float = 0.5,
+    stop: threading.Event | None = None,
 ) -> dict[str, TrialEstimate]:
     """Each entry's ``TrialEstimate``: its method's ``measured`` mean where there is one,
-    else calibrated on this machine, timing each part for ``seconds_per_part``."""
+    else calibrated on this machine, timing each part for ``seconds_per_part``; once
+    ``stop`` is set the calibration raises ``agent.calibrate.Stopped``."""
     estimates = {}
     to_calibrate = [e for e in entries if e.method not in measured]
     for entry in entries:
@@ -126,7 +130,7 @@ def estimate_trials(
     if to_calibrate:
         from agent.calibrate import Calibration
 
-        with Calibration(seconds=seconds_per_part) as calibration:
+        with Calibration(seconds=seconds_per_part, stop=stop) as calibration:
             for entry in to_calibrate:
                 config = entry.trial_config
                 costs = calibration.costs(config)
@@ -137,16 +141,24 @@ def estimate_trials(
 
 
 class InBackground:
-    """``estimate_trials`` in a daemon thread, so the calibration runs while Ray and the
-    workers start; ``result()`` waits for it: the estimates, or the exception it raised."""
+    """``estimate_trials`` in a thread, so the calibration runs while Ray and the workers
+    start; ``result()`` waits for it: the estimates, or the exception it raised. ``stop()``
+    ends it early and waits: call it before the process may exit (a launch that ends
+    first), since a thread still in torch or MuJoCo at exit aborts the process."""
+
+    THREAD_NAME = "sweeper-calibration"
 
     def __init__(
         self, entries: Sequence[PlanEntry], measured: dict[str, float], seconds_per_part: float
     ) -> None:
         self.seconds = 0.0
         self._result: dict[str, TrialEstimate] | BaseException | None = None
+        self._stop = threading.Event()
         self._thread = threading.Thread(
-            target=self._run, args=(entries, measured, seconds_per_part), daemon=True
+            target=self._run,
+            args=(entries, measured, seconds_per_part),
+            name=self.THREAD_NAME,
+            daemon=True,
         )
         self._thread.start()
 
@@ -155,7 +167,7 @@ class InBackground:
     ) -> None:
         start = time.perf_counter()
         try:
-            self._result = estimate_trials(entries, measured, seconds)
+            self._result = estimate_trials(entries, measured, seconds, self._stop)
         except BaseException as e:  # handed to result(): the launch goes on without
             self._result = e
         self.seconds = time.perf_counter() - start
@@ -164,6 +176,11 @@ class InBackground:
         self._thread.join()
         assert self._result is not None
         return self._result
+
+    def stop(self) -> None:
+        """End the calibration at its next timed call and wait for the thread."""
+        self._stop.set()
+        self._thread.join()
 
 
 def summary_lines(

@@ -151,7 +151,6 @@ def launch(
     ``Interrupted`` throughout.
     """
     stream = sys.stderr if stream is None else stream
-    execution = spec.execution
     with sigterm_stops():
         try:
             check_writable(spec.storage_url)
@@ -173,18 +172,37 @@ def launch(
         # the calibration runs while Ray and the workers start
         estimate = None if stage is not None else start_estimate(runs, study)
         try:
-            started_ray = start_ray(execution.address, num_cpus=local_cpus(execution))
-        except SystemExit:  # Ray's own SIGTERM handlers, set while it starts, exit this way
+            return _start_ray_and_launch(spec, plan, train, stream, stage, estimate, skip)
+        finally:  # a launch that ends first (busy, interrupted, ...) ends the calibration
+            if estimate is not None:
+                estimate.stop()
+
+
+def _start_ray_and_launch(
+    spec: StudySpec,
+    plan: Plan,
+    train: Callable[..., Any] | None,
+    stream: TextIO,
+    stage: Stage | None,
+    estimate: InBackground | None,
+    skip: frozenset[str],
+) -> int:
+    """Connect to Ray (starting a local one unless ``execution.address`` names a cluster),
+    run the study on it, and shut down a Ray this call started."""
+    address = spec.execution.address
+    try:
+        started_ray = start_ray(address, num_cpus=local_cpus(spec.execution))
+    except SystemExit:  # Ray's own SIGTERM handlers, set while it starts, exit this way
+        stop_ray()
+        raise Interrupted() from None
+    except Exception as e:  # ConnectionError, an auth error, ...
+        print(cannot_reach_message(address, e), file=stream)
+        return 2
+    try:
+        return _launch_on_ray(spec, plan, train, stream, stage, estimate, skip)
+    finally:
+        if started_ray:
             stop_ray()
-            raise Interrupted() from None
-        except Exception as e:  # ConnectionError, an auth error, ...
-            print(cannot_reach_message(execution.address, e), file=stream)
-            return 2
-        try:
-            return _launch_on_ray(spec, plan, train, stream, stage, estimate, skip)
-        finally:
-            if started_ray:
-                stop_ray()
 
 
 def read_study(spec: StudySpec, plan: Plan) -> tuple[list[Any], dict[str, Any]] | None:

@@ -663,6 +663,30 @@ def takeover_record() -> dict:
     return {"host": "elsewhere", "pid": 1, "started": None, "heartbeat": time.time() + 3600}
 
 
+@pytest.mark.slow
+def test_a_launch_that_ends_first_ends_its_calibration(tmp_path, local_ray, monkeypatch):
+    """A launch that ends before it reads its estimate (here another driver is alive: exit
+    3) stops the calibration thread and waits for it: a thread still in torch or MuJoCo when
+    the process exits aborts it ("terminate called without an active exception"), which
+    made a busy racer exit -6 instead of 3 under load."""
+    from sweeper import launcher
+    from sweeper.estimate import InBackground
+
+    monkeypatch.setattr(launcher, "CALIBRATION_SECONDS", 600.0)  # still calibrating at the end
+    spec, plan = prepare(str(one_trial_spec(tmp_path, "busy", address=local_ray)))
+    storage = open_storage(spec.storage_url)
+    try:
+        store = StudyStore.open_or_create(storage, "busy", launcher.study_attrs(spec, plan))
+        storage.set_study_user_attr(store.study_id, "driver", takeover_record())
+    finally:
+        storage.engine.dispose()
+    stream = io.StringIO()
+    assert launch(spec, plan, train=hold, stream=stream) == 3, stream.getvalue()
+    assert "another `sweeper launch` drives this study" in stream.getvalue()
+    calibrating = [t for t in threading.enumerate() if t.name == InBackground.THREAD_NAME]
+    assert not calibrating
+
+
 def hold(config, report=None):
     """A trial that reports step 0, then waits for a file ``release`` beside the checkpoint
     root (at most 120 s), then finishes."""
