@@ -49,6 +49,7 @@ from sweeper.storage import (
     check_writable,
     code_revision,
     current_trials,
+    curve_of,
     ledger,
     package_versions,
     redact,
@@ -353,7 +354,7 @@ def halving_state(plan: Plan, store: StudyStore) -> tuple[Ladder | None, Curves]
     planned = {e.key: e for e in entries}
     curves = {}
     for key, trial in current_trials(store.trials()).items():
-        curve = trial.user_attrs.get("curve")
+        curve = curve_of(trial)
         if key in planned and trial.state.name in DONE_STATES and curve:
             entry = planned[key]
             curves[(entry.method, entry.config_id, entry.seed)] = (

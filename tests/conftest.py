@@ -20,6 +20,7 @@ import pytest
 import yaml
 
 from agent.config import SACConfig, TrialConfig
+from sweeper.storage import curve_of
 
 ROOT = Path(__file__).resolve().parent.parent
 CI_SPEC = ROOT / "studies" / "ci.yaml"
@@ -80,7 +81,7 @@ def assert_uninterrupted_curve(trial: Any, config: TrialConfig) -> None:
 
     torch.set_num_threads(1)
     reference = train(dataclasses.replace(config, checkpoint_dir=None, stop_at=None))
-    curve = trial.user_attrs["curve"]
+    curve = curve_of(trial)
     assert curve["step"] == list(reference.steps)
     for name, values in reference.metrics.items():
         assert curve[name] == list(values), name

@@ -41,7 +41,7 @@ from sweeper.stats import (
     several,
     stratified_bootstrap,
 )
-from sweeper.storage import current_trials, ledger
+from sweeper.storage import current_trials, curve_of, ledger
 
 METHODS = ("pixel", "linear", "vae")
 FIGURES = ("curves.png", "trials.png", "auc.png", "efficiency.png", "profiles.png")
@@ -101,7 +101,7 @@ def test_frame_matches_the_storage(synthetic):
             assert first["auc"] == pytest.approx(trial.value)
         for name, value in trial.params.items():
             assert first[f"params_{name}"] == value
-        curve = trial.user_attrs["curve"]
+        curve = curve_of(trial)
         assert rows["step"].tolist() == curve["step"]
         for metric in study_info(frame).metrics:
             expected = np.array(curve[metric], dtype=float)
@@ -171,7 +171,7 @@ def test_curves_are_means_over_done_trials(synthetic):
         t for t in current_trials(trials_of(url, "syn")).values() if t.state == TrialState.COMPLETE
     ]
     for method in METHODS:
-        mine = [t.user_attrs["curve"] for t in done if t.user_attrs["method"] == method]
+        mine = [curve_of(t) for t in done if t.user_attrs["method"] == method]
         values = np.array([c["final_hand_distance"] for c in mine], dtype=float)
         part = curves[(curves["method"] == method) & (curves["metric"] == "final_hand_distance")]
         np.testing.assert_allclose(part["mean"], np.nanmean(values, axis=0))
@@ -245,9 +245,7 @@ def test_ci_study_aggregates_from_its_storage(ci_study, ci_aggregate):
         rows = frame[frame["trial"] == trial.number]
         steps, success = rows["step"].tolist(), rows["success_rate"].tolist()
         assert dict(zip(steps, success, strict=True)) == pytest.approx(trial.intermediate_values)
-        assert rows["final_distance"].tolist() == pytest.approx(
-            trial.user_attrs["curve"]["final_distance"]
-        )
+        assert rows["final_distance"].tolist() == pytest.approx(curve_of(trial)["final_distance"])
         assert rows["auc"].iloc[0] == pytest.approx(trial.value)
         assert trial.value == pytest.approx(normalized_auc(steps, success))
         method = trial.user_attrs["method"]
@@ -347,11 +345,7 @@ def test_sample_efficiency_curves_are_iqms_over_done_trials(synthetic):
     done = done_trials(url, "syn")
     for method in METHODS:
         success = np.array(
-            [
-                t.user_attrs["curve"]["success_rate"]
-                for t in done
-                if t.user_attrs["method"] == method
-            ]
+            [curve_of(t)["success_rate"] for t in done if t.user_attrs["method"] == method]
         )
         part = curves[curves["method"] == method]
         assert part["step"].tolist() == [0, 1000, 2000, 3000, 4000]
@@ -373,7 +367,7 @@ def test_performance_profiles_count_trials_above_tau(synthetic):
         mine = [t for t in done if t.user_attrs["method"] == method]
         scores = {
             "auc": np.array([t.value for t in mine]),
-            "final_success": np.array([t.user_attrs["curve"]["success_rate"][-1] for t in mine]),
+            "final_success": np.array([curve_of(t)["success_rate"][-1] for t in mine]),
         }
         for score, values in scores.items():
             part = profiles[(profiles["method"] == method) & (profiles["score"] == score)]

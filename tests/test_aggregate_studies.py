@@ -18,7 +18,7 @@ from sweeper import cli
 from sweeper.aggregate import load_study_frame
 from sweeper.aggregate.normalize import study_anchors
 from sweeper.stats import SUMMARIES, Group, iqm, several, stratified_bootstrap
-from sweeper.storage import current_trials
+from sweeper.storage import current_trials, curve_of
 
 #: name -> (env, methods, random agent's success rate)
 STUDIES = {
@@ -65,7 +65,7 @@ def expected_scores(url: str, name: str) -> pd.DataFrame:
     done = done_by_method(url, name)
 
     def final(trial) -> float:
-        return trial.user_attrs["curve"]["success_rate"][-1]
+        return curve_of(trial)["success_rate"][-1]
 
     controls = {m: done[m] for m in ("state", "true_reward") if m in done}
     best = max(controls, key=lambda m: iqm([t.value for t in controls[m]]))

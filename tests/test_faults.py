@@ -27,7 +27,7 @@ from optuna.trial import TrialState
 from agent import train
 from agent.config import TrialResult
 from sweeper.launcher import launch, prepare
-from sweeper.storage import StudyStore, open_storage
+from sweeper.storage import StudyStore, curve_of, open_storage
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake trains below
@@ -212,7 +212,7 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, loca
             successor = trials[trial.user_attrs["superseded_by"]]
             assert successor.user_attrs["key"] == trial.user_attrs["key"]
             assert trial.number in successor.user_attrs["supersedes"]
-    assert all(t.user_attrs["curve"]["step"] == [0, 100, 200] for t in by_key.values())
+    assert all(curve_of(t)["step"] == [0, 100, 200] for t in by_key.values())
     for key in resumable:
         assert by_key[key].user_attrs["resumed_from"] == 100, key  # its checkpoint's step
 
@@ -655,7 +655,7 @@ def test_a_full_or_read_only_checkpoint_dir_fails_the_trial_and_a_relaunch_resum
     (resumed,) = check_exact_budget(stored_trials(spec.storage_url, "ckfull"), plan.keys()).values()
     assert resumed.user_attrs["supersedes"] == [failed.number]
     assert resumed.user_attrs["resumed_from"] == 100
-    assert resumed.user_attrs["curve"]["step"] == [0, 100, 200, 300]
+    assert curve_of(resumed)["step"] == [0, 100, 200, 300]
 
 
 def takeover_record() -> dict:

@@ -20,7 +20,7 @@ from agent.config import Outcome, TrialResult
 from agent.metrics import normalized_auc
 from sweeper.halving import HALVING_ATTR, Ladder
 from sweeper.launcher import launch, prepare
-from sweeper.storage import open_storage
+from sweeper.storage import curve_of, open_storage
 
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake train below
 
@@ -119,8 +119,8 @@ def test_every_method_runs_the_same_trials_and_steps_at_every_rung(tmp_path):
     # the replay of the study's recorded curves takes the live run's decisions
     curves = {
         (t.user_attrs["method"], t.user_attrs["config_id"], t.user_attrs["seed"]): (
-            t.user_attrs["curve"]["step"],
-            t.user_attrs["curve"]["success_rate"],
+            curve_of(t)["step"],
+            curve_of(t)["success_rate"],
         )
         for t in trials.values()
     }
@@ -210,7 +210,7 @@ def check_exact_rungs(trials, plan) -> dict[str, optuna.trial.FrozenTrial]:
         assert sorted(t.state for t in mine) == [TrialState.COMPLETE, TrialState.PRUNED]
         pruned = next(t for t in mine if t.state == TrialState.PRUNED)
         assert pruned.user_attrs["rung"] == 200
-        assert pruned.user_attrs["curve"]["step"] == [0, 100, 200]
+        assert curve_of(pruned)["step"] == [0, 100, 200]
     entries = {e.key: e for e in plan.entries}
     for key, trial in by_key.items():
         if trial.state == TrialState.COMPLETE:

@@ -21,7 +21,7 @@ from agent.config import TrialResult
 from agent.metrics import normalized_auc
 from sweeper import cli, launcher
 from sweeper.launcher import launch, prepare
-from sweeper.storage import StudyStore, open_storage
+from sweeper.storage import CURVE_ATTR, StudyStore, curve_of, open_storage
 
 GRID = [0, 100, 200, 300]  # studies/ci.yaml: env_steps 300, eval_every 100
 
@@ -43,7 +43,8 @@ def check_ci_study(study: optuna.Study) -> None:
     assert sorted(t.user_attrs["key"] for t in trials) == ["linear/0/0", "pixel/0/0"]
     for trial in trials:
         attrs = trial.user_attrs
-        curve = attrs["curve"]
+        assert CURVE_ATTR not in attrs  # a system attr: the dashboard's trial table stays short
+        curve = curve_of(trial)
         assert curve["step"] == GRID
         assert set(curve) == {"step", "success_rate", "final_distance"}
         assert trial.intermediate_values == dict(zip(GRID, curve["success_rate"], strict=True))
@@ -106,7 +107,7 @@ def test_the_image_control_and_the_oracle_are_methods_like_any_other(tmp_path, m
     trials = load("sqlite:///runs/ci/study.db").get_trials()
     assert sorted(t.user_attrs["key"] for t in trials) == ["state/0/0", "true_reward/0/0"]
     for trial in trials:
-        assert trial.state == TrialState.COMPLETE and trial.user_attrs["curve"]["step"] == GRID
+        assert trial.state == TrialState.COMPLETE and curve_of(trial)["step"] == GRID
         assert trial.user_attrs["reward_scale"] > 0  # the spec's default: "auto", measured
     assert cli.main(["aggregate", str(spec)]) == 0
     table = (tmp_path / "runs" / "ci" / "aggregate" / "auc_table.csv").read_text()
@@ -131,7 +132,7 @@ def test_a_named_variant_runs_beside_its_encoder_to_aggregate_and_confirm(
     assert fixed["conv_pytorch_init.init"] == "pytorch" and fixed["conv.init"] == "drq"
     assert variant.params["method"] == "conv_pytorch_init" and base.params["method"] == "conv"
     for trial in (base, variant):
-        assert trial.state == TrialState.COMPLETE and trial.user_attrs["curve"]["step"] == GRID
+        assert trial.state == TrialState.COMPLETE and curve_of(trial)["step"] == GRID
     # the same SAC configuration and seed, another reward encoder: another reward scale
     assert base.user_attrs["reward_scale"] != variant.user_attrs["reward_scale"]
 
@@ -288,7 +289,7 @@ def test_exception_and_divergence_are_recorded_then_relaunch_reruns_failed(tmp_p
         200,
         "critic",
     )
-    assert diverged.user_attrs["curve"]["final_distance"] == [1.0, 0.5, None, None]
+    assert curve_of(diverged)["final_distance"] == [1.0, 0.5, None, None]
     assert diverged.intermediate_values == {0: 0.0, 100: 0.5, 200: 0.0, 300: 0.0}
 
     capsys.readouterr()

@@ -24,6 +24,7 @@ from sweeper.storage import (
     StudyStore,
     check_storage,
     current_trials,
+    curve_of,
     database_error,
     is_database_error,
     is_outage,
@@ -159,7 +160,28 @@ def test_sqlite_no_lost_write_with_a_dashboard_reading(sqlite_url, tmp_path):
     assert [t.value for t in trials] == [0.5, 1.5, 2.5, 3.5]
     for trial in trials:
         assert trial.intermediate_values == {s * 10: s / 100 for s in range(60)}
-        assert trial.user_attrs["curve"]["step"] == [s * 10 for s in range(60)]
+        assert curve_of(trial)["step"] == [s * 10 for s in range(60)]
+
+
+def test_the_curve_is_a_system_attr_and_an_older_user_attr_curve_still_reads(sqlite_url):
+    """The driver's curve goes to the trial's system attrs (optuna-dashboard's trial table
+    does not show them); a trial written before, with the curve as a user attr, still
+    reads, for ``curve_of`` and for aggregate's ``read_rows``."""
+    from sweeper.study import read_rows
+
+    store = StudyStore.open_or_create(open_storage(sqlite_url), "curves", {"plan_hash": "h"})
+    curves = [{"step": [0, 10], "success_rate": [0.0, float(n)]} for n in range(2)]
+    new = store.add_waiting({"lr": 1e-3}, {"lr": (1e-3,)}, {"key": "m/0/0"})
+    store.start(new._trial_id)
+    store.set_attrs(new._trial_id, {"curve": curves[0], "worker": "here"})
+    old = store.add_waiting({"lr": 1e-3}, {"lr": (1e-3,)}, {"key": "m/1/0"})
+    store.storage.set_trial_user_attr(old._trial_id, "curve", curves[1])  # as written before
+    new, old = store.trials()
+    assert "curve" not in new.user_attrs and new.user_attrs["worker"] == "here"
+    assert [curve_of(new), curve_of(old)] == curves
+    rows = read_rows(sqlite_url, "curves")
+    assert rows.curves["trial_id"].tolist() == [new._trial_id]
+    assert json.loads(rows.curves["value_json"][0]) == curves[0]
 
 
 def _lifecycle(url: str) -> None:

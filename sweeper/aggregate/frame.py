@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
-from sweeper.storage import current_numbers
+from sweeper.storage import CURVE_ATTR, current_numbers
 from sweeper.storage.params import FIXED_PARAMS_ATTR, METHOD_PARAM, applies_to
 from sweeper.study import read_rows
 
@@ -61,8 +61,9 @@ def load_study_frame(storage_url: str, study_name: str) -> pd.DataFrame:
 
     Columns: ``TRIAL_COLUMNS`` (trial = Optuna trial number, state = Optuna state name,
     auc = the trial's value, stage = ``"search"`` or ``"confirm"``), ``step``, one column
-    per reported metric (from the ``curve`` user attr; a trial without one falls back to
-    its intermediate values as ``success_rate``), then ``params_<name>`` per
+    per reported metric (from the trial's curve, ``sweeper.storage.curve_of``; a trial
+    without one falls back to its intermediate values as ``success_rate``), then
+    ``params_<name>`` per
     hyperparameter (the registered ones and the study's constants,
     ``sweeper.storage.params``; the ``method`` param is the ``method`` column). A trial
     with no evaluation yet has one row with ``step`` missing.
@@ -84,13 +85,15 @@ def _build_frame(study_name: str, raw: StudyRows) -> pd.DataFrame:
     attrs_by_trial: dict[int, dict[str, Any]] = {}
     for trial_id, key, value_json in user_attrs.itertuples(index=False):
         attrs_by_trial.setdefault(trial_id, {})[key] = json.loads(value_json)
+    for trial_id, value_json in raw.curves.itertuples(index=False):  # over an older user attr
+        attrs_by_trial.setdefault(trial_id, {})[CURVE_ATTR] = json.loads(value_json)
     special = {"FINITE": None, "INF_POS": math.inf, "INF_NEG": -math.inf, "NAN": math.nan}
     auc = {
         t: v if special[kind] is None else special[kind]
         for t, v, kind in values.itertuples(index=False)
     }
     fallback: dict[int, dict[int, float]] = {}  # intermediate values of trials with no curve
-    with_curve = {t for t, attrs in attrs_by_trial.items() if attrs.get("curve")}
+    with_curve = {t for t, attrs in attrs_by_trial.items() if attrs.get(CURVE_ATTR)}
     intermediate = intermediate[~intermediate["trial_id"].isin(with_curve)]
     for t, step, v, kind in intermediate.itertuples(index=False):
         fallback.setdefault(t, {})[int(step)] = v if special[kind] is None else special[kind]
@@ -120,7 +123,7 @@ def _build_frame(study_name: str, raw: StudyRows) -> pd.DataFrame:
             constants = {k: v for k, v in fixed.items() if applies_to(k, attrs.get("method"))}
             mine = {**constants, **mine}
         row.update({f"params_{k}": v for k, v in mine.items()})
-        curve = attrs.get("curve")
+        curve = attrs.get(CURVE_ATTR)
         if not curve:
             points = sorted(fallback.get(trial_id, {}).items())
             curve = {"step": [s for s, _ in points], "success_rate": [v for _, v in points]}

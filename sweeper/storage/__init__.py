@@ -58,6 +58,7 @@ from sweeper.storage.urls import (
     sqlite_path,
 )
 from sweeper.storage.writer import (
+    CURVE_ATTR,
     DRIVER_STALE_SECONDS,
     OBJECTIVE_NAME,
     RETRY_MAX_DELAY,
@@ -65,6 +66,7 @@ from sweeper.storage.writer import (
     Heartbeat,
     StudyStore,
     busy_message,
+    curve_of,
     driver_alive,
     json_safe,
     name_objective,
@@ -73,6 +75,7 @@ from sweeper.storage.writer import (
 )
 
 __all__ = [
+    "CURVE_ATTR",
     "DONE_STATES",
     "DRIVER_STALE_SECONDS",
     "OBJECTIVE_NAME",
@@ -94,6 +97,7 @@ __all__ = [
     "connect_read_only",
     "current_numbers",
     "current_trials",
+    "curve_of",
     "database_cause",
     "database_error",
     "driver_alive",
