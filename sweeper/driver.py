@@ -25,9 +25,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
+# Everything the driver runs is imported when the launch starts, never in the middle of a
+# study: code changed under a running launch (a git pull) would otherwise be half-loaded
+# (a lazy import of the new sweeper.aggregate beside the old sweeper.storage once stopped
+# a 10-hour study with an ImportError after a trial; tests/test_launch_errors.py).
+from agent.checkpoint import saved_step
 from agent.config import Outcome, TrialResult
 from agent.metrics import normalized_auc
 from agent.storage_io import is_uri, remove
+from sweeper.aggregate import live
 from sweeper.artifacts import ArtifactStore, artifact_location, upload_once
 from sweeper.execution import (
     Errored,
@@ -210,8 +216,6 @@ class Driver:
         outcome = event.result.outcome
         self.progress.set_state(job.key, outcome)
         self.progress.note(f"{job.key} {outcome}: AUC {event.result.auc:.3f}")
-        from sweeper.aggregate import live  # the dashboard's figures, at a bounded cost
-
         last = not (self.queue or self.jobs or self.retry)
         live.after_trial(self.store, final=last, say=self.progress.note)
 
@@ -375,8 +379,6 @@ def record_result(store: StudyStore, job: Job, result: TrialResult) -> None:
 def checkpoint_step(entry: PlanEntry) -> int | None:
     """The env step the trial of ``entry`` would resume from: its checkpoint's, or None
     when it has none (or it cannot be read: then it restarts from step 0)."""
-    from agent.checkpoint import saved_step  # torch: only when a launch is stopped
-
     location = entry.trial_config.checkpoint_dir
     return None if location is None else saved_step(location)
 

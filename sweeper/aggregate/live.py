@@ -22,6 +22,10 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from sweeper.aggregate.dashboard import save_to_dashboard
+from sweeper.aggregate.frame import load_study_frame, stage_frame, study_info
+from sweeper.aggregate.tables import study_tables
+
 if TYPE_CHECKING:
     from sweeper.storage import StudyStore
 
@@ -68,10 +72,6 @@ class FigureRefresh:
 def refresh(store: StudyStore) -> None:
     """Save the comparison figures and note of the study's search stage into it, computed
     as ``sweeper aggregate`` computes them (no files written)."""
-    from sweeper.aggregate.dashboard import save_to_dashboard
-    from sweeper.aggregate.frame import load_study_frame, stage_frame, study_info
-    from sweeper.aggregate.tables import study_tables
-
     name = store.storage.get_study_name_from_id(store.study_id)
     frame = load_study_frame(store.storage.url, name)
     seed = int((study_info(frame).attrs.get("spec") or {}).get("seed", 0))
