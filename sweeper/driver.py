@@ -172,7 +172,8 @@ class Driver:
                 config, checkpoint_dir=str(Path(config.checkpoint_dir).absolute())
             )
         self.pool.submit(job.key, config)
-        self.progress.set_state(job.key, KeyStatus.RUNNING)
+        resumed_from = checkpoint_step(job.entry) or 0
+        self.progress.set_state(job.key, KeyStatus.RUNNING, from_step=resumed_from)
 
     def handle(self, event: Event) -> None:
         job = self.jobs[event.token]

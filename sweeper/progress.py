@@ -69,26 +69,48 @@ class LaunchProgress:
         self.states: dict[str, State] = dict.fromkeys(keys, Outcome.COMPLETED)
         self.steps: dict[str, int] = {}
         self.estimates, self.workers = estimates, workers
-        # (time, env steps done, predicted seconds done) when the launch began
+        # the work this launch did: env steps and their predicted seconds, and each running
+        # key's step it has counted up to (a resumed trial starts at its checkpoint's)
+        self._advanced, self._predicted = 0.0, 0.0
+        self._at: dict[str, int] = {}
+        # (time, env steps done, predicted seconds done) when the clock started
         self._start: tuple[float, float, float] | None = None
         self._last, self._busy = 0.0, 0.0  # the last eta() call; trial-seconds since start
         self._last_draw = -float("inf")
         self._drawn_lines = 0
 
-    def set_state(self, key: str, state: State) -> None:
-        """Move ``key`` to one of ``STATES``."""
+    def set_state(self, key: str, state: State, from_step: int = 0) -> None:
+        """Move ``key`` to one of ``STATES``; ``from_step``: the env step a RUNNING key's
+        trial starts from (its checkpoint's: the steps before it are not this launch's)."""
         if state not in STATES:
             raise ValueError(f"state must be one of {tuple(map(str, STATES))}, got {state!r}")
         self.states[key] = STATES[STATES.index(state)]
-        if state == KeyStatus.LEFT:
+        if state == KeyStatus.RUNNING:
+            self._at[key] = self.steps[key] = from_step
+        elif state == Outcome.COMPLETED:
+            self._advance(key, self.env_steps)
+        elif state == KeyStatus.LEFT:
             self.steps.pop(key, None)
 
     def set_step(self, key: str, step: int) -> None:
         """The env step ``key`` last reported."""
         self.steps[key] = step
+        self._advance(key, step)
+
+    def _advance(self, key: str, step: int) -> None:
+        """Count the work of ``key`` from the step counted last up to ``step``: a resumed
+        trial first reports again what its checkpoint holds, which is not new work."""
+        at = self._at.get(key, 0)
+        if step <= at:
+            return
+        self._advanced += step - at
+        estimate = (self.estimates or {}).get(key)
+        if estimate is not None:
+            self._predicted += estimate.until(step) - estimate.until(at)
+        self._at[key] = step
 
     def work(self) -> float:
-        """Env steps done so far, over all keys."""
+        """Env steps done so far, over all keys (those done before this launch too)."""
         total = 0.0
         for key, state in self.states.items():
             if state == KeyStatus.RUNNING:
@@ -97,34 +119,23 @@ class LaunchProgress:
                 total += self.env_steps
         return total
 
-    def predicted_work(self) -> float:
-        """Predicted seconds of the work done so far, over the keys with an estimate."""
-        total = 0.0
-        for key, estimate in (self.estimates or {}).items():
-            state = self.states.get(key)
-            if state == KeyStatus.RUNNING:
-                total += estimate.until(self.steps.get(key, 0))
-            elif state is not None and state != KeyStatus.LEFT:
-                total += estimate.seconds
-        return total
-
     def eta(self, now: float) -> tuple[float, float | None]:
-        """(env steps/s since the launch began, seconds left or None if unknown).
+        """(env steps/s of this launch since the clock started, seconds left or None if
+        unknown).
 
         With estimates: the trials left handed to the workers (``makespan``), the running
         ones holding theirs, scaled by how much slower (or faster) than predicted this
         launch has run once it has done ``MIN_PACED_WORK`` predicted seconds of work."""
-        work, predicted = self.work(), self.predicted_work()
         if self._start is None:
-            self._start = (now, work, predicted)
+            self._start = (now, self._advanced, self._predicted)
             self._last = now
         running = sum(state == KeyStatus.RUNNING for state in self.states.values())
         self._busy += running * (now - self._last)  # seconds of trials running, summed
         self._last = now
-        elapsed, done = now - self._start[0], work - self._start[1]
+        elapsed, done = now - self._start[0], self._advanced - self._start[1]
         rate = done / elapsed if elapsed > 0 else 0.0
         if self.estimates is None:
-            remaining = self.env_steps * len(self.states) - work
+            remaining = self.env_steps * len(self.states) - self.work()
             return rate, (remaining / rate if rate > 0 else None)
         busy, left = [], []
         for key, state in self.states.items():
@@ -136,7 +147,7 @@ class LaunchProgress:
             elif state == KeyStatus.LEFT:
                 left.append(estimate.seconds)
         seconds = makespan(left, self.workers, busy[: self.workers])
-        predicted_done = predicted - self._start[2]
+        predicted_done = self._predicted - self._start[2]
         if predicted_done >= MIN_PACED_WORK and self._busy > 0:
             # the pace: the workers' wall time so far over the predicted seconds they did
             seconds *= self._busy / predicted_done

@@ -177,6 +177,33 @@ def test_the_launch_eta_knows_the_seed_phase_and_follows_the_pace():
     assert progress.lines(now=210.0)[0].endswith("ETA 14 min")
 
 
+def test_a_resumed_trial_s_steps_before_its_checkpoint_are_not_the_launch_s_pace():
+    """A trial resumed from its checkpoint at step 12,000 first reports its curve up to
+    there again: neither the rate nor the pace counts those steps (they made a relaunched
+    study say "391 env steps/s | ETA 18 min" where 13 h were left)."""
+    from agent.calibrate import TrialCosts
+    from sweeper.estimate import TrialEstimate
+    from sweeper.progress import LaunchProgress
+
+    config = TrialConfig(total_steps=15000, seed_steps=1000, eval_every=1000, eval_episodes=1)
+    costs = TrialCosts(setup=0.0, seed_step=0.0, train_step=0.1, eval_step=0.0)  # 1,400 s
+    keys = ["a/0/0", "a/1/0"]
+    estimates = {k: TrialEstimate(costs.seconds(config), "calibrated", config, costs) for k in keys}
+    progress = LaunchProgress("s", keys, 15000, estimates=estimates, workers=1)
+    for key in keys:
+        progress.set_state(key, "left")
+    progress.set_state("a/0/0", "running", from_step=12000)
+    assert progress.eta(now=0.0)[1] == pytest.approx(300 + 1400)
+    for step in range(0, 13001, 1000):  # the checkpoint's curve again, then one new step
+        progress.set_step("a/0/0", step)
+    rate, seconds = progress.eta(now=200.0)
+    assert rate == pytest.approx(1000 / 200)
+    # 100 predicted seconds took 200 s: 2x slower than predicted
+    assert seconds == pytest.approx((200 + 1400) * 2)
+    progress.set_state("a/0/0", "completed")
+    assert progress.eta(now=600.0)[0] == pytest.approx(3000 / 600)
+
+
 def test_halving_seconds_count_each_rung_s_trials():
     from sweeper.estimate import TrialEstimate, halving_seconds
     from sweeper.halving import Schedule
