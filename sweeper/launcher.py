@@ -31,7 +31,6 @@ import optuna
 from agent.envs import env_class
 from agent.metrics import metric_key
 from sweeper import random_agent
-from sweeper.driver import Driver
 from sweeper.estimate import InBackground, TrialEstimate, finished, summary_lines
 from sweeper.execution import WorkerPool, start_ray, stop_ray
 from sweeper.halving import HALVING_ATTR, Curves, Ladder
@@ -335,6 +334,10 @@ def _sync_and_drive(
         estimates=estimates, workers=len(pool),
     )  # fmt: skip
     ladder, curves = halving_state(plan, store)
+    # here, not at the top: the driver loads all it runs (torch, the dashboard's figures)
+    # before its loop, and ``prepare`` (spec checks) stays without them
+    from sweeper.driver import Driver
+
     return Driver(spec, store, pool, progress, beat, stream, ladder, curves).run(todo)
 
 
