@@ -52,15 +52,16 @@ def test_the_dashboard_shows_the_comparison_and_plays_a_trial_video(ci_study, ci
         page.wait_for(ready)
         figures = page.evaluate(FIGURES_JS)
 
-        # the comparison figures render, the methods named in them
-        expected = {"sweeper-auc", "sweeper-trials", "sweeper-profiles"}
+        # the comparison figures render, the methods named in them, the table first (the
+        # order is a Python set's: sweeper dashboard fixes its hash seed)
+        expected = {"sweeper-comparison", "sweeper-auc", "sweeper-trials", "sweeper-profiles"}
         expected |= {"sweeper-curves-success_rate", "sweeper-curves-final_distance"}
         assert expected <= set(figures)
+        assert next(iter(figures)) == "sweeper-comparison", list(figures)
         for name, figure in figures.items():
             assert figure["svg"] and "pixel" in figure["text"], name
             assert "linear" in figure["text"], name
-        if "sweeper-comparison" in figures:
-            assert "IQM AUC" in figures["sweeper-comparison"]["text"]
+        assert "IQM AUC" in figures["sweeper-comparison"]["text"]
         # a band draws no markers; the lines over them draw one per evaluation step
         problems = []  # what a reader would see wrong, all of it reported at the end
         for name in ("sweeper-curves-success_rate", "sweeper-curves-final_distance"):

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import CI_SPEC, ROOT, wait_until, write_ci_spec
+from conftest import CI_SPEC, ROOT, wait_until
 
 from sweeper import cli, launcher
 from sweeper.storage import open_storage
@@ -28,35 +28,6 @@ print(code, [m for m in ("torch", "ray", "optuna", "mujoco", "matplotlib") if m 
 """
 
 COMMANDS = ["launch", "status", "aggregate", "confirm", "dashboard", "diagnose"]
-
-#: a launch of the CI study (fast fake trials) that prints its exit code and the project
-#: modules first imported after the driver loop started
-LATE_IMPORTS = """
-import sys
-from agent.config import TrialResult
-from sweeper import driver, launcher
-
-started = []
-run = driver.Driver.run
-
-
-def recording_run(self, todo):
-    started.append(set(sys.modules))
-    return run(self, todo)
-
-
-def quick(config, report=None):
-    report(0, {"success_rate": 0.0, "final_distance": 1.0})
-    metrics = {"success_rate": (0.0, 1.0), "final_distance": (1.0, 0.0)}
-    return TrialResult(steps=(0, config.total_steps), metrics=metrics, auc=0.5)
-
-
-driver.Driver.run = recording_run
-spec, plan = launcher.prepare(sys.argv[1])
-code = launcher.launch(spec, plan, train=quick)
-late = set(sys.modules) - started[0]
-print(code, sorted(m for m in late if m.split(".")[0] in ("agent", "encoders", "sweeper")))
-"""
 
 
 @pytest.mark.parametrize("command", [[], *([c] for c in COMMANDS)])
@@ -158,26 +129,3 @@ def test_sigterm_during_start_up_exits_130_with_one_line(tmp_path, moment):
     assert err.strip().splitlines()[-1].startswith("sweeper launch: stopped"), err
     if moment != "TrialWorker":
         assert not database.exists()
-
-
-def test_the_driver_imports_no_code_of_ours_once_its_loop_runs(tmp_path):
-    """Every module of this project the driver uses is imported before its loop starts: code
-    changed under a running launch (a git pull) was otherwise loaded half new, half old (the
-    new ``sweeper.aggregate`` imported after a trial, beside the old ``sweeper.storage``) and
-    stopped the study with an ImportError. The stop path's ``saved_step`` is loaded too."""
-    spec = write_ci_spec(
-        tmp_path / "spec.yaml",
-        storage=f"sqlite:///{tmp_path / 'study.db'}",
-        checkpoints=str(tmp_path / "checkpoints"),
-    )
-    done = subprocess.run(
-        [sys.executable, "-c", LATE_IMPORTS + "print('agent.checkpoint' in sys.modules)",
-         str(spec)],
-        cwd=tmp_path,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )  # fmt: skip
-    lines = done.stdout.strip().splitlines()
-    assert lines[-2:] == ["0 []", "True"], done.stdout + done.stderr[-3000:]

@@ -36,8 +36,16 @@ def trial(config, report=None):
     metrics = {"success_rate": (0.0, 1.0), "final_distance": (1.0, 0.0)}
     return TrialResult(steps=(0, config.total_steps), metrics=metrics, auc=0.5)
 
+# the project's modules loaded when the driver loop starts (see the exit-0 test)
+from sweeper import driver
+started, run = [], driver.Driver.run
+driver.Driver.run = lambda self, todo: started.append(set(sys.modules)) or run(self, todo)
 spec, plan = prepare(spec_path)
-sys.exit(launch(spec, plan, train=trial))
+code = launch(spec, plan, train=trial)
+late = set(sys.modules) - started[0]
+ours = sorted(m for m in late if m.split(".")[0] in ("agent", "sweeper"))
+print("imported late:", ours, "agent.checkpoint" in started[0])
+sys.exit(code)
 """
 
 
@@ -92,6 +100,10 @@ def kill_session(sid: int) -> None:
 
 @pytest.mark.slow
 def test_a_launch_prints_none_of_rays_noise_and_leaves_no_process_after_exit_0(tmp_path):
+    """And the driver imports none of the project's code once its loop runs: code changed
+    under a running launch (a git pull) was otherwise loaded half new, half old (the new
+    ``sweeper.aggregate`` imported after a trial beside the old ``sweeper.storage``), which
+    stopped a study with an ImportError; the stop path's ``saved_step`` is loaded too."""
     driver = start_driver(tmp_path, "die")
     try:
         assert driver.wait(timeout=240) == 0, (tmp_path / "out.log").read_text()
@@ -104,6 +116,7 @@ def test_a_launch_prints_none_of_rays_noise_and_leaves_no_process_after_exit_0(t
     assert "re-running" in out and "pixel/0/0 completed" in out
     assert "Token authentication" not in out, out
     assert "A worker died" not in out and "(raylet)" not in out, out
+    assert "imported late: [] True" in out, out
 
 
 @pytest.mark.slow
