@@ -28,7 +28,7 @@ from typing import Any, TextIO
 # Everything the driver runs is imported when the launch starts, never in the middle of a
 # study: code changed under a running launch (a git pull) would otherwise be half-loaded
 # (a lazy import of the new sweeper.aggregate beside the old sweeper.storage once stopped
-# a 10-hour study with an ImportError after a trial; tests/test_launch_errors.py).
+# a 10-hour study with an ImportError after a trial; tests/test_ray_cleanup.py).
 from agent.checkpoint import saved_step
 from agent.config import Outcome, TrialResult
 from agent.metrics import normalized_auc

@@ -63,8 +63,7 @@ def load_study_frame(storage_url: str, study_name: str) -> pd.DataFrame:
     auc = the trial's value, stage = ``"search"`` or ``"confirm"``), ``step``, one column
     per reported metric (from the trial's curve, ``sweeper.storage.curve_of``; a trial
     without one falls back to its intermediate values as ``success_rate``), then
-    ``params_<name>`` per
-    hyperparameter (the registered ones and the study's constants,
+    ``params_<name>`` per hyperparameter (the registered ones and the study's constants,
     ``sweeper.storage.params``; the ``method`` param is the ``method`` column). A trial
     with no evaluation yet has one row with ``step`` missing.
     ``study_info(frame)`` is the ``StudyInfo``.
