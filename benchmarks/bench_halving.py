@@ -15,8 +15,9 @@ gentler ones) and rule (``per_method``, ``mean_rank``), it prints how often each
 best full-budget configuration survives, the mean and worst AUC lost (best full AUC minus
 the chosen configuration's), and the fraction of env steps spent against the full study.
 
-With ``--storage``/``--study`` it also replays a finished study's recorded curves (each
-method whose search trials are all complete), e.g. the FetchReach CPU study:
+With ``--storage``/``--study`` it also replays a study's recorded curves, on the SAC
+configurations every method has finished (all of them once the study is), e.g. the
+FetchReach CPU study:
 
     .venv/bin/python benchmarks/bench_halving.py --storage \
         sqlite:///docs/studies/fetch_reach_cpu/study.db --study fetch_reach_cpu
@@ -74,28 +75,28 @@ def summarize(results: list[dict[str, halving.MethodReplay]]) -> tuple[float, fl
     return float(survived), float(lost.mean()), float(lost.max()), rows[0].compute_fraction
 
 
-def study_curves(storage: str, study: str) -> tuple[halving.Curves, list[str]]:
-    """The search curves of a study's methods whose every planned key is complete, and the
-    methods left out (not complete)."""
+def study_curves(storage: str, study: str) -> tuple[halving.Curves, list[int], int]:
+    """The search curves of a study's configurations that every method has finished (every
+    seed; a study still running has done some, as its keys run round by round), those
+    configurations, and how many the plan has."""
     from sweeper.aggregate.frame import load_study_frame, scored, stage_frame, study_info
 
     frame = load_study_frame(storage, study)
     plan = study_info(frame).attrs.get("plan", [])
-    rows = scored(stage_frame(frame, "search"))
-    curves, complete, incomplete = {}, [], []
-    for method in sorted({k.split("/")[0] for k in plan}):
-        keys = [k for k in plan if k.split("/")[0] == method]
-        done = rows[rows["method"] == method]
-        if set(done["key"]) != set(keys):
-            incomplete.append(f"{method} ({done['key'].nunique()}/{len(keys)} done)")
-            continue
-        complete.append(method)
-        for (config, seed), trial in done.groupby(["config_id", "seed"]):
-            curves[(method, int(config), int(seed))] = (
-                trial["step"].astype(int).tolist(),
-                trial["success_rate"].astype(float).tolist(),
-            )
-    return curves, incomplete
+    planned_configs = sorted({int(k.split("/")[1]) for k in plan})
+    done = scored(stage_frame(frame, "search"))
+    finished = set(done["key"])
+    complete = [
+        c for c in planned_configs if all(k in finished for k in plan if int(k.split("/")[1]) == c)
+    ]
+    curves = {}
+    rows = done[done["config_id"].astype(int).isin(complete)]
+    for (method, config, seed), trial in rows.groupby(["method", "config_id", "seed"]):
+        curves[(method, int(config), int(seed))] = (
+            trial["step"].astype(int).tolist(),
+            trial["success_rate"].astype(float).tolist(),
+        )
+    return curves, complete, len(planned_configs)
 
 
 def print_replay(name: str, result: dict[str, halving.MethodReplay]) -> None:
@@ -111,7 +112,9 @@ def print_replay(name: str, result: dict[str, halving.MethodReplay]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--studies", type=int, default=500, help="synthetic studies per world")
+    parser.add_argument(
+        "--studies", type=int, default=500, help="synthetic studies per world (0: none)"
+    )
     parser.add_argument("--methods", type=int, default=6)
     parser.add_argument("--configs", type=int, default=20)
     parser.add_argument("--seeds", type=int, default=2)
@@ -125,42 +128,41 @@ def main() -> None:
         ((BUDGET // 4,), halving.DEFAULT_KEEP),
         ((BUDGET // 10, BUDGET // 4), 0.5),
     ]
-    print(
-        f"synthetic: {args.studies} studies per world, {args.methods} methods x "
-        f"{args.configs} configs x {args.seeds} seeds, {BUDGET} env steps"
-    )
-    print(
-        f"{'world':<14} {'rungs':<14} {'keep':>5} {'rule':<11} {'best kept':>9} "
-        f"{'AUC lost':>8} {'worst':>6} {'compute':>8}"
-    )
-    for world in WORLDS:
-        rng = np.random.default_rng(0)
-        studies = [
-            synthetic_curves(rng, world, args.methods, args.configs, args.seeds)
-            for _ in range(args.studies)
-        ]
-        for rungs, keep in schedules:
-            for rule in halving.RULES:
-                results = [halving.replay(c, rungs, keep, rule) for c in studies]
-                survived, lost, worst, fraction = summarize(results)
-                print(
-                    f"{world:<14} {list(rungs)!s:<14} {keep:>5.2f} {rule:<11} "
-                    f"{survived:>9.0%} {lost:>8.3f} {worst:>6.3f} {fraction:>8.0%}"
-                )
+    if args.studies:  # 0: the study only
+        print(
+            f"synthetic: {args.studies} studies per world, {args.methods} methods x "
+            f"{args.configs} configs x {args.seeds} seeds, {BUDGET} env steps"
+        )
+        print(
+            f"{'world':<14} {'rungs':<14} {'keep':>5} {'rule':<11} {'best kept':>9} "
+            f"{'AUC lost':>8} {'worst':>6} {'compute':>8}"
+        )
+        for world in WORLDS:
+            rng = np.random.default_rng(0)
+            studies = [
+                synthetic_curves(rng, world, args.methods, args.configs, args.seeds)
+                for _ in range(args.studies)
+            ]
+            for rungs, keep in schedules:
+                for rule in halving.RULES:
+                    results = [halving.replay(c, rungs, keep, rule) for c in studies]
+                    survived, lost, worst, fraction = summarize(results)
+                    print(
+                        f"{world:<14} {list(rungs)!s:<14} {keep:>5.2f} {rule:<11} "
+                        f"{survived:>9.0%} {lost:>8.3f} {worst:>6.3f} {fraction:>8.0%}"
+                    )
 
     if args.storage:
-        curves, incomplete = study_curves(args.storage, args.study)
+        curves, complete, planned = study_curves(args.storage, args.study)
         print(f"\nstudy {args.study!r} in {args.storage}")
-        if incomplete:
-            print(f"  left out, not complete: {', '.join(incomplete)}")
-        if not curves:
-            print("  no method is complete yet: nothing to replay")
+        print(f"  configurations every method has finished: {complete} of {planned}")
+        if len(complete) < 2:
+            print("  fewer than 2: nothing to choose between, nothing to replay")
             return
         budget = max(steps[-1] for steps, _ in curves.values())
         grid = int(np.diff(next(iter(curves.values()))[0]).min())
-        configs = len({c for _, c, _ in curves})
         for rungs, keep in [(halving.default_rungs(budget, grid), halving.DEFAULT_KEEP)]:
-            sizes = halving.rung_sizes(configs, len(rungs) + 1, keep)
+            sizes = halving.rung_sizes(len(complete), len(rungs) + 1, keep)
             for rule in halving.RULES:
                 name = f"rungs {list(rungs)} keep {keep:.2f} ({sizes}) rule {rule}"
                 print_replay(name, halving.replay(curves, rungs, keep, rule))
