@@ -46,7 +46,8 @@ class Snapshot:
     ``curve`` is the evaluation curve so far (``{"step": [...], metric: [...]}``);
     ``agent`` and ``replay`` are the SAC and replay ``state_dict()``s; the random states
     are torch's (and CUDA's, an empty list on CPU), the trial's numpy generator's and the
-    training env's generator's (``bit_generator.state``).
+    training env's generator's (``bit_generator.state``); ``machines`` the runs so far
+    (``TrialResult.machines``).
     """
 
     step: int
@@ -59,6 +60,7 @@ class Snapshot:
     cuda_rng: list[torch.Tensor]
     numpy_rng: dict[str, Any]
     env_rng: dict[str, Any]
+    machines: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
 
 def save(directory: str, config: TrialConfig, snapshot: Snapshot) -> None:
@@ -120,6 +122,7 @@ def load(directory: str, config: TrialConfig) -> Snapshot | None:
         cuda_rng=state["cuda_rng"],
         numpy_rng=state["numpy_rng"],
         env_rng=state["env_rng"],
+        machines=list(state.get("machines", [])),  # absent before machines were recorded
     )
 
 

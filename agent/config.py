@@ -186,7 +186,9 @@ class TrialResult:
     ``resumed_from`` the env step of the checkpoint this run started from, if any;
     ``reward_scale`` the factor the reward was multiplied by (``"auto"`` resolved);
     ``video_seconds`` the wall time spent filming and encoding episode videos (included in
-    ``seconds``; the runs that recorded them).
+    ``seconds``; the runs that recorded them); ``machines`` one ``agent.machine.describe``
+    per run of the trial with its ``from_step``, the first run's 0 (runs before a
+    checkpoint written by code older than this field are not listed).
     """
 
     steps: tuple[int, ...]
@@ -199,3 +201,4 @@ class TrialResult:
     resumed_from: int | None = None
     reward_scale: float = 1.0
     video_seconds: float = 0.0
+    machines: tuple[dict[str, Any], ...] = ()

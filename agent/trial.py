@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 import encoders
-from agent import checkpoint, video
+from agent import checkpoint, machine, video
 from agent.config import TRUE_REWARD_METHODS, Outcome, TrialConfig, TrialResult
 from agent.envs import make_env
 from agent.envs.base import EPISODE_STEPS
@@ -271,6 +271,8 @@ class _Trial:
         self.checkpointed_at: int | None = None  # the step of the last checkpoint written or read
         self.seconds_before = 0.0  # wall time of the runs before the resumed checkpoint
         self.video_seconds = 0.0
+        self.machines_before: list[dict[str, Any]] = []  # the runs before the checkpoint
+        self.machine = machine.describe(device)
 
     def run(self) -> TrialResult:
         """Resume or evaluate the untrained agent, then train to ``total_steps``, evaluating
@@ -371,6 +373,10 @@ class _Trial:
         """Wall time of the trial so far, over every run of it."""
         return self.seconds_before + time.perf_counter() - self.start
 
+    def machines(self) -> list[dict[str, Any]]:
+        """Where each run of the trial so far ran, from which step."""
+        return [*self.machines_before, {"from_step": self.resumed_from or 0, **self.machine}]
+
     def save_checkpoint(self) -> None:
         self.checkpointed_at = self.step
         checkpoint.save(
@@ -387,6 +393,7 @@ class _Trial:
                 cuda_rng=torch.cuda.get_rng_state_all() if self.device.type == "cuda" else [],
                 numpy_rng=self.rng.bit_generator.state,
                 env_rng=self.env.np_random.bit_generator.state,
+                machines=self.machines(),
             ),
         )
 
@@ -401,6 +408,7 @@ class _Trial:
         self.step = self.resumed_from = self.checkpointed_at = saved.step
         self.seconds_before = saved.seconds
         self.video_seconds = saved.video_seconds
+        self.machines_before = saved.machines
         self.agent.load_state_dict(saved.agent)
         self.replay.load_state_dict(saved.replay)
         torch.set_rng_state(saved.torch_rng)
@@ -426,4 +434,5 @@ class _Trial:
             resumed_from=self.resumed_from,
             reward_scale=self.scale,
             video_seconds=self.video_seconds,
+            machines=tuple(self.machines()),
         )

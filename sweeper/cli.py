@@ -46,6 +46,9 @@ COMMANDS: dict[str, Command] = {
     "status": Command(
         "sweeper.status", "per-method ledger of a study: done, running, failed, left"
     ),
+    "rerun": Command(
+        "sweeper.rerun", "run one recorded trial again and compare its curve with the record"
+    ),
     "dashboard": Command("sweeper.dashboard", "open optuna-dashboard on a study's storage"),
     "aggregate": Command(
         "sweeper.aggregate", "per-method curves, AUC table, figures and report", Specs.MANY

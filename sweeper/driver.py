@@ -370,6 +370,7 @@ def record_result(store: StudyStore, job: Job, result: TrialResult) -> None:
         "resumed_from": result.resumed_from,
         "reward_scale": result.reward_scale,
         "video_seconds": result.video_seconds,
+        "machines": list(result.machines),
     }
     if result.outcome == Outcome.DIVERGED:
         attrs["diverged_step"] = result.diverged_step

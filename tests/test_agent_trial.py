@@ -11,6 +11,7 @@ import torch
 from conftest import tiny
 
 import agent
+from agent import machine
 from agent.config import TrialConfig
 from agent.envs import ENV_NAMES
 from agent.metrics import normalized_auc
@@ -137,6 +138,8 @@ def test_resume_gives_the_same_curve(tmp_path: Path) -> None:
     resumed_report = Recorder()
     resumed = agent.train(config, resumed_report)
     assert resumed.resumed_from == 50
+    here = machine.describe(torch.device("cpu"))  # both runs ran here, one from the checkpoint
+    assert resumed.machines == ({"from_step": 0, **here}, {"from_step": 50, **here})
     assert resumed_report.calls == [0, 50, 100, 150]  # checkpointed points re-reported
     # what the crashed run reported (step 100 too, evaluated again) is reported identically
     assert all(resumed_report.points[s] == m for s, m in crash.points.items())
@@ -144,6 +147,33 @@ def test_resume_gives_the_same_curve(tmp_path: Path) -> None:
     straight = agent.train(dataclasses.replace(config, checkpoint_dir=None))
     assert straight.steps == resumed.steps
     assert straight.metrics == resumed.metrics and straight.auc == resumed.auc
+    assert straight.machines == ({"from_step": 0, **here},)
+
+
+CPUINFO = """processor\t: 0
+vendor_id\t: GenuineIntel
+cpu family\t: 6
+model\t\t: 143
+model name\t: Intel(R) Xeon(R) Platinum 8480+
+flags\t\t: fpu avx512f
+
+processor\t: 1
+vendor_id\t: GenuineIntel
+"""
+
+
+def test_the_machine_is_described_by_what_its_kernels_depend_on() -> None:
+    assert machine.cpu_fields(CPUINFO) == {
+        "vendor_id": "GenuineIntel",
+        "cpu family": "6",
+        "model": "143",
+        "model name": "Intel(R) Xeon(R) Platinum 8480+",
+    }
+    assert machine.cpu_fields("") == {}
+    here = machine.describe(torch.device("cpu"))
+    assert set(here) == {"cpu", "cpu_name", "kernels", "torch"}
+    assert here["kernels"] == torch.backends.cpu.get_cpu_capability()
+    assert here["torch"] == torch.__version__
 
 
 def test_a_trial_paused_at_a_rung_goes_on_to_the_uninterrupted_curve(tmp_path: Path) -> None:

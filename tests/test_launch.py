@@ -55,6 +55,9 @@ def check_ci_study(study: optuna.Study) -> None:
         assert (attrs["config_id"], attrs["seed"]) == (0, 0)
         assert attrs["plan_hash"] == study.user_attrs["plan_hash"]
         assert attrs["worker"]["pid"] > 0
+        # the machine it ran on, for anyone re-running it (agent.machine)
+        assert [m["from_step"] for m in attrs["machines"]] == [0]
+        assert attrs["machines"][0]["kernels"] and attrs["machines"][0]["cpu"]
         # the params that vary are trial params, with the method; constants are study attrs
         assert set(trial.params) == {"lr", "method"}
         assert trial.params["method"] == attrs["method"]
@@ -97,6 +100,15 @@ def test_launch_ci_end_to_end_then_status_then_a_relaunch_reruns_nothing(
     monkeypatch.setattr(launcher, "start_ray", no_ray)  # nothing left: no Ray (issue 22)
     assert cli.main(["launch", str(CI_SPEC)]) == 0  # nothing left: nothing re-run
     assert "2 of 2 trials done, 0 to run" in capsys.readouterr().err
+    assert [(t.number, t.datetime_complete) for t in load(url).get_trials()] == before
+
+    # anyone can re-run a recorded trial from its plan entry: here, the same curve exactly
+    monkeypatch.undo()  # Ray's absence was the relaunch's check; rerun starts none anyway
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["rerun", str(CI_SPEC), "pixel/0/0"]) == 0
+    out = capsys.readouterr().out
+    assert "the same machine: the curve should be the recorded one" in out
+    assert "the same curve: every metric at all 4 steps is the recorded float" in out
     assert [(t.number, t.datetime_complete) for t in load(url).get_trials()] == before
 
 

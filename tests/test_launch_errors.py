@@ -27,7 +27,7 @@ print(code, [m for m in ("torch", "ray", "optuna", "mujoco", "matplotlib") if m 
       file=sys.stderr)
 """
 
-COMMANDS = ["launch", "status", "aggregate", "confirm", "dashboard", "diagnose"]
+COMMANDS = ["launch", "status", "aggregate", "confirm", "dashboard", "diagnose", "plan", "rerun"]
 
 
 @pytest.mark.parametrize("command", [[], *([c] for c in COMMANDS)])

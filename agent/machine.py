@@ -1,0 +1,51 @@
+"""The machine a trial runs on, as far as its numbers depend on it.
+
+A trial is bit-exact on one machine (a re-run in a fresh process gives the same curve),
+not across machines: PyTorch's CPU kernels are chosen at run time, ATen's vectorised
+loops by the instruction set it detects and MKL's matrix products by the CPU's vendor as
+well. Measured on fetch_reach_cpu's ``state/0/0`` (MLPs only, so MKL's products are the
+only kernels that matter there): on an AMD EPYC its step-0 final distance is 0.1777445,
+and 0.1777456 with ``MKL_CBWR=COMPATIBLE``, MKL's vendor-neutral path; the study recorded
+0.1777448 on the machine it ran on; by step 7,000 the success rates differ (0.1 and 0.3).
+So every run of a trial records ``describe(device)``, and a re-run is expected to give the
+recorded curve where the description is the same.
+"""
+
+from __future__ import annotations
+
+import platform
+from pathlib import Path
+
+import torch
+
+CPUINFO = Path("/proc/cpuinfo")
+
+
+def cpu_fields(cpuinfo: str) -> dict[str, str]:
+    """The first processor's ``vendor_id``, ``cpu family``, ``model`` and ``model name``
+    in ``/proc/cpuinfo`` text (what MKL dispatches on besides the instruction set)."""
+    fields: dict[str, str] = {}
+    for line in cpuinfo.split("\n\n", 1)[0].splitlines():
+        name, _, value = line.partition(":")
+        fields.setdefault(name.strip(), value.strip())
+    return {k: fields[k] for k in ("vendor_id", "cpu family", "model", "model name") if k in fields}
+
+
+def describe(device: torch.device) -> dict[str, str]:
+    """What a trial's numbers depend on beyond its code and config: the CPU (``cpu``:
+    vendor, family and model number; ``cpu_name``), the instruction set of PyTorch's
+    kernels, PyTorch's version and, on CUDA, the GPU."""
+    try:
+        cpu = cpu_fields(CPUINFO.read_text())
+    except OSError:  # not Linux: what the platform module knows
+        cpu = {}
+    ids = [cpu.get("vendor_id", platform.machine()), cpu.get("cpu family"), cpu.get("model")]
+    described = {
+        "cpu": " ".join(i for i in ids if i),
+        "cpu_name": cpu.get("model name", platform.processor()),
+        "kernels": torch.backends.cpu.get_cpu_capability(),
+        "torch": str(torch.__version__),  # a str subclass that torch.load refuses
+    }
+    if device.type == "cuda":
+        described["gpu"] = torch.cuda.get_device_name(device)
+    return described

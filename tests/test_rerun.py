@@ -1,0 +1,42 @@
+"""``sweeper rerun``'s comparison and what it says of the machines (the command itself runs
+at the end of test_launch's end-to-end test, on the CI study it launched)."""
+
+from __future__ import annotations
+
+import math
+
+from sweeper.rerun import first_difference, machine_lines
+
+CURVE = {"step": [0, 100], "success_rate": [0.0, 0.5], "final_distance": [0.3, math.nan]}
+HERE = {"cpu": "AuthenticAMD 26 2", "cpu_name": "AMD EPYC", "kernels": "AVX512", "torch": "2"}
+
+
+def test_curves_are_compared_float_for_float_nan_equal_to_nan():
+    assert first_difference(CURVE, dict(CURVE)) is None
+    off = {**CURVE, "final_distance": [0.30000000000000004, math.nan]}
+    assert first_difference(CURVE, off) == (
+        "step 0, final_distance: 0.30000000000000004 (recorded: 0.3)"
+    )
+    later = {**CURVE, "success_rate": [0.0, 0.6]}
+    assert first_difference(CURVE, later) == "step 100, success_rate: 0.6 (recorded: 0.5)"
+    assert "evaluation steps" in first_difference(CURVE, {**CURVE, "step": [0, 50]})
+    missing = {k: v for k, v in CURVE.items() if k != "final_distance"}
+    assert first_difference(CURVE, missing) == "no final_distance (recorded: 0.3)"
+    # a metric the record does not hold (a newer agent's) is not compared
+    assert first_difference(CURVE, {**CURVE, "new": [1.0, 1.0]}) is None
+
+
+def test_the_machines_say_whether_the_same_curve_is_to_be_expected():
+    same = machine_lines([{"from_step": 0, **HERE}], HERE)
+    assert same[-1] == "the same machine: the curve should be the recorded one"
+    intel = {**HERE, "cpu": "GenuineIntel 6 143", "cpu_name": "Xeon"}
+    other = machine_lines([{"from_step": 0, **intel}, {"from_step": 5000, **HERE}], HERE)
+    assert (
+        other[0] == "recorded on: Xeon (GenuineIntel 6 143), kernels AVX512, torch 2 (from step 0)"
+    )
+    assert other[-1].startswith("another machine (or unknown)")
+    resumed = machine_lines([{"from_step": 5000, **HERE}], HERE)  # an older checkpoint's runs
+    assert "the runs before step 5000 were not recorded" in resumed
+    assert resumed[-1].startswith("another machine (or unknown)")
+    unknown = machine_lines(None, HERE)
+    assert unknown[0].startswith("recorded on: not recorded")
