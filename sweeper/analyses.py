@@ -84,6 +84,29 @@ def _correlation(settings: Settings, target: Target) -> pd.DataFrame:
     return summary.assign(analysis="correlation")
 
 
+def _precision(settings: Settings, target: Target) -> pd.DataFrame:
+    summary, goals = dx.goal_precision(
+        target.env,
+        target.encoders,
+        settings.precision_goals,
+        settings.precision_states,
+        settings.precision_radius,
+        settings.success_radius,
+        seed=settings.seed,
+        progress=not settings.quiet,
+    )
+    summary = target.write(summary, "precision")
+    goals = target.write(goals, "precision_goals")
+    plots.plot_precision(
+        goals,
+        settings.success_radius,
+        target.out / "precision.png",
+        f"{target.name}: where the latent reward peaks within {settings.precision_radius} "
+        "of the goal",
+    )
+    return summary.assign(analysis="precision")
+
+
 def _topology(settings: Settings, target: Target) -> pd.DataFrame:
     env = target.env
     dims = grid_dims(settings.grid_dims, tuple(env.state_names))
@@ -131,6 +154,7 @@ RUNNERS: dict[str, Callable[[Settings, Target], pd.DataFrame | None]] = {
     "exploration": _exploration,
     "gradient": _gradient,
     "correlation": _correlation,
+    "precision": _precision,
     "topology": _topology,
     "variance": _variance,
 }

@@ -36,7 +36,7 @@ from sweeper.diagnose_settings import (
 )
 from sweeper.frames import env_views
 
-ANALYSES = ("exploration", "gradient", "correlation", "topology", "variance")
+ANALYSES = ("exploration", "gradient", "correlation", "precision", "topology", "variance")
 #: summary.csv; ``start`` is set on the rows of the analyses that draw (state, goal) pairs
 SUMMARY_COLUMNS = ["env", "analysis", "encoder", "metric", "value", "start"]
 #: the defaults of the options that set ``Settings``
@@ -124,6 +124,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULTS.variance_states,
         help="arm-vs-object states (fetch_push only)",
     )
+    parser.add_argument(
+        "--precision-goals", type=int, default=DEFAULTS.precision_goals,
+        help="near-goal precision: goals, each from the env's reset",
+    )  # fmt: skip
+    parser.add_argument(
+        "--precision-states", type=int, default=DEFAULTS.precision_states,
+        help="near-goal precision: states uniform in a ball around each goal",
+    )  # fmt: skip
+    parser.add_argument(
+        "--precision-radius", type=float, default=DEFAULTS.precision_radius,
+        help="near-goal precision: the ball's radius",
+    )  # fmt: skip
+    parser.add_argument(
+        "--success-radius", type=float, default=DEFAULTS.success_radius,
+        help="near-goal precision: a state this close to the goal succeeds (Fetch: 0.05 m)",
+    )  # fmt: skip
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
 

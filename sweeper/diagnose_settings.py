@@ -36,10 +36,16 @@ class Settings:
     grid_size: int = 15  # topology grid side
     grid_dims: str | None = None  # two state names or indices; None: the env's first two
     variance_states: int = 100  # arm-vs-object states (fetch_push only)
+    precision_goals: int = 20  # goals of the near-goal analysis
+    precision_states: int = 200  # states around each goal
+    precision_radius: float = 0.15  # the ball they are drawn in
+    success_radius: float = 0.05  # Fetch's success threshold (m)
     quiet: bool = False  # no progress lines
 
     def __post_init__(self) -> None:
-        for name in ("episodes", "gradient_states", "directions", "pairs", "variance_states"):
+        counts = ("episodes", "gradient_states", "directions", "pairs", "variance_states",
+                  "precision_goals", "precision_states")  # fmt: skip
+        for name in counts:
             if getattr(self, name) < 1:
                 raise UsageError(f"--{name.replace('_', '-')} must be positive")
         if self.pairs < 3:
@@ -48,6 +54,10 @@ class Settings:
             raise UsageError("--grid-size must be at least 5")
         if not self.alpha > 0:
             raise UsageError("--alpha must be positive")
+        if self.precision_states < 2:
+            raise UsageError("--precision-states must be at least 2")
+        if not 0 < self.success_radius < self.precision_radius < math.inf:
+            raise UsageError("need 0 < --success-radius < --precision-radius")
         if not 0 <= self.min_goal_distance < math.inf:
             raise UsageError("--min-goal-distance must be finite and at least 0")
         if self.start not in START_MODES:

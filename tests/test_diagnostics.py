@@ -255,6 +255,35 @@ def test_reward_correlation_draws_pairs_from_the_env_reset() -> None:
     assert summary["value"].isna().all()
 
 
+def test_precision_statistics_by_hand() -> None:
+    from encoders.diagnostics.precision import ball, peak_metrics, success_auc
+
+    points = ball(np.random.default_rng(0), np.array([1.0, 2.0]), 0.5, 2000)
+    radii = np.linalg.norm(points - [1.0, 2.0], axis=1)
+    assert radii.max() <= 0.5 and np.mean(radii < 0.25) == pytest.approx(0.25, abs=0.03)
+    succeeded = np.array([True, True, False, False])
+    assert success_auc(np.array([3.0, 1.0, 2.0, 0.0]), succeeded) == 0.75  # 3 of 4 pairs
+    assert success_auc(np.array([1.0, 1.0, 1.0, 1.0]), succeeded) == 0.5  # ties: a half
+    assert np.isnan(success_auc(np.zeros(4), np.zeros(4, bool)))
+    # the reward peaks at the state 0.08 away, outside the 0.05 radius
+    metrics = peak_metrics(np.array([0.0, 1.0, 0.5]), np.array([0.01, 0.08, 0.2]), 0.05)
+    assert metrics["peak_distance"] == 0.08 and metrics["peak_success"] == 0.0
+    assert metrics["success_auc"] == 0.0 and metrics["spearman"] == pytest.approx(-0.5)
+
+
+def test_goal_precision_peaks_where_the_true_reward_does_when_the_image_shows_the_state():
+    summary, goals = dx.goal_precision(StripeEnv(), pixel(), num_goals=4, num_states=50,
+                                       radius=0.3, success_radius=0.1, progress=False)  # fmt: skip
+    got = summary.pivot(index="metric", columns="encoder", values="value")
+    peaks = got.loc["peak_distance"]
+    assert peaks["pixel"] == pytest.approx(peaks["true_reward"])
+    assert got.loc["success_auc", "pixel"] > 0.99 and got.loc["spearman", "pixel"] > 0.99
+    assert list(goals.columns) == ["encoder", "metric", "value", "goal"]
+    assert len(goals) == 2 * 4 * 4  # (true_reward, pixel) x 4 goals x 4 metrics
+    with pytest.raises(ValueError, match="success_radius"):
+        dx.goal_precision(StripeEnv(), pixel(), radius=0.1, success_radius=0.2, progress=False)
+
+
 def test_grid_topology() -> None:
     summary, emb = dx.grid_topology(
         StripeEnv(), pixel(), grid_size=7, n_neighbors=5, progress=False
@@ -291,7 +320,8 @@ def test_random_frames() -> None:
 
 # ---- the CLI ----------------------------------------------------------------------------
 SMALL = ["--episodes", "3", "--gradient-states", "3", "--directions", "4", "--pairs", "5",
-         "--grid-size", "5", "--variance-states", "3", "--quiet"]  # fmt: skip
+         "--grid-size", "5", "--variance-states", "3", "--precision-goals", "2",
+         "--precision-states", "5", "--quiet"]  # fmt: skip
 
 
 def test_cli_writes_its_files(tmp_path, capsys) -> None:
@@ -300,12 +330,12 @@ def test_cli_writes_its_files(tmp_path, capsys) -> None:
                  "--image-size", "32", "--out", str(tmp_path / "{env}"), *SMALL])  # fmt: skip
     assert code == 0
     out = tmp_path / "point_reach"
-    for stem in ("exploration", "gradient", "correlation", "topology"):
+    for stem in ("exploration", "gradient", "correlation", "precision", "topology"):
         assert (out / f"{stem}.png").stat().st_size > 1000
         table = pd.read_csv(out / f"{stem}.csv")
         assert list(table.columns[:4]) == ["env", "encoder", "metric", "value"]
     summary = pd.read_csv(out / "summary.csv")
-    assert set(summary["encoder"]) == {"none", "pixel", "cvae"}
+    assert set(summary["encoder"]) == {"none", "pixel", "cvae", "true_reward"}  # precision
     assert "mean_cosine_distance" in set(summary["metric"])
     assert "point_reach: wrote" in capsys.readouterr().out
     # Algorithm 1's defaults, recorded: pairs from the env's reset, no near-goal filter
@@ -379,6 +409,8 @@ def test_cli_on_fetch_push(tmp_path) -> None:
         (["--analyses", "gradient,isomap"], "unknown analysis 'isomap'"),
         (["--grid-dims", "x,q"], "unknown state 'q'; states: x, y"),
         (["--pairs", "0"], "--pairs must be positive"),
+        (["--precision-states", "1"], "--precision-states must be at least 2"),
+        (["--success-radius", "0.2"], "need 0 < --success-radius < --precision-radius"),
         (["--min-goal-distance", "-1"], "--min-goal-distance must be finite and at least 0"),
         (["--min-goal-distance", "nan"], "--min-goal-distance must be finite and at least 0"),
     ],

@@ -22,6 +22,7 @@ from encoders.diagnostics.gradient import (
     random_directions,
     true_reward_gradient,
 )
+from encoders.diagnostics.precision import goal_precision
 from encoders.diagnostics.topology import default_grid_dims, grid_topology
 from encoders.diagnostics.variance import arm_object_variance, has_arm
 
@@ -30,6 +31,7 @@ __all__ = [
     "arm_object_variance",
     "cosine_distance",
     "default_grid_dims",
+    "goal_precision",
     "gradient_agreement",
     "gradient_summary",
     "grid_topology",

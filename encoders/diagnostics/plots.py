@@ -77,6 +77,27 @@ def plot_correlation(pairs: pd.DataFrame, summary: pd.DataFrame, path: Path, tit
     return _save(fig, path, title)
 
 
+def plot_precision(goals: pd.DataFrame, success_radius: float, path: Path, title: str) -> Path:
+    """Per encoder, each goal's peak distance (left, with the success radius) and success
+    AUC (right, with chance)."""
+    names = list(dict.fromkeys(goals["encoder"]))
+    fig, (left, right) = _grid(2, max(5.0, 1.1 * len(names)), 3.8, cols=2)
+    for ax, metric, line, label in (
+        (left, "peak_distance", success_radius, "success radius"),
+        (right, "success_auc", 0.5, "chance"),
+    ):
+        data = [goals.loc[(goals["encoder"] == n) & (goals["metric"] == metric), "value"]
+                .dropna().to_numpy() for n in names]  # fmt: skip
+        ax.boxplot(data, tick_labels=names, showmeans=True)
+        ax.axhline(line, color="gray", linestyle="--", label=label)
+        ax.set_xlabel("encoder (true_reward: the true reward)")
+        ax.legend(loc="best")
+    left.set_ylabel("distance of the reward's peak to the goal")
+    right.set_ylabel("P(success state > near miss)")
+    right.set_ylim(0, 1.05)
+    return _save(fig, path, title)
+
+
 def plot_topology(embedding: pd.DataFrame, path: Path, title: str, labels: tuple[str, str]) -> Path:
     """Isomap embeddings of the grid latents, coloured by each grid coordinate."""
     plt = _pyplot()
