@@ -99,6 +99,21 @@ def study_curves(storage: str, study: str) -> tuple[halving.Curves, list[int], i
     return curves, complete, len(planned_configs)
 
 
+def study_schedules(budget: int, grid: int) -> list[tuple[tuple[int, ...], float]]:
+    """The schedules compared: the default (keep 1/3 at 1/9 and 1/3 of the budget), one rung
+    at 1/4, and keep 1/2 at 1/10 and 1/4; rungs rounded down to the evaluation grid."""
+
+    def on_grid(*fractions: float) -> tuple[int, ...]:
+        steps = [int(budget * f) // grid * grid for f in fractions]
+        return tuple(dict.fromkeys(step for step in steps if step > 0))
+
+    return [
+        (halving.default_rungs(budget, grid), halving.DEFAULT_KEEP),
+        (on_grid(1 / 4), halving.DEFAULT_KEEP),
+        (on_grid(1 / 10, 1 / 4), 0.5),
+    ]
+
+
 def print_replay(name: str, result: dict[str, halving.MethodReplay]) -> None:
     print(f"  {name}")
     for method, r in result.items():
@@ -122,12 +137,7 @@ def main() -> None:
     parser.add_argument("--study", help="its name")
     args = parser.parse_args()
 
-    default = halving.default_rungs(BUDGET, EVAL_EVERY)
-    schedules = [
-        (default, halving.DEFAULT_KEEP),
-        ((BUDGET // 4,), halving.DEFAULT_KEEP),
-        ((BUDGET // 10, BUDGET // 4), 0.5),
-    ]
+    schedules = study_schedules(BUDGET, EVAL_EVERY)
     if args.studies:  # 0: the study only
         print(
             f"synthetic: {args.studies} studies per world, {args.methods} methods x "
@@ -161,7 +171,7 @@ def main() -> None:
             return
         budget = max(steps[-1] for steps, _ in curves.values())
         grid = int(np.diff(next(iter(curves.values()))[0]).min())
-        for rungs, keep in [(halving.default_rungs(budget, grid), halving.DEFAULT_KEEP)]:
+        for rungs, keep in study_schedules(budget, grid):
             sizes = halving.rung_sizes(len(complete), len(rungs) + 1, keep)
             for rule in halving.RULES:
                 name = f"rungs {list(rungs)} keep {keep:.2f} ({sizes}) rule {rule}"
