@@ -46,6 +46,10 @@ COMMANDS: dict[str, Command] = {
     "status": Command(
         "sweeper.status", "per-method ledger of a study: done, running, failed, left"
     ),
+    "publish": Command(
+        "sweeper.publish",
+        "copy a study with its ledger, videos and report into a folder (docs/studies/<study>)",
+    ),
     "rerun": Command(
         "sweeper.rerun", "run one recorded trial again and compare its curve with the record"
     ),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 import uuid
@@ -22,6 +23,7 @@ from agent.metrics import normalized_auc
 from sweeper import cli, launcher
 from sweeper.launcher import launch, prepare
 from sweeper.storage import CURVE_ATTR, StudyStore, curve_of, open_storage
+from sweeper.storage.writer import _this_driver
 
 GRID = [0, 100, 200, 300]  # studies/ci.yaml: env_steps 300, eval_every 100
 
@@ -110,6 +112,31 @@ def test_launch_ci_end_to_end_then_status_then_a_relaunch_reruns_nothing(
     assert "the same machine: the curve should be the recorded one" in out
     assert "the same curve: every metric at all 4 steps is the recorded float" in out
     assert [(t.number, t.datetime_complete) for t in load(url).get_trials()] == before
+
+    # published while a driver holds it (this process poses as one): the copy is not driven
+    optuna.load_study(study_name="ci", storage=url).set_user_attr("driver", _this_driver())
+    assert cli.main(["publish", str(CI_SPEC), "--out", "pub"]) == 0
+    pub = tmp_path / "pub"
+    files = ["aggregate", "artifacts", "status.txt", "study.db"]  # one database file
+    assert sorted(p.name for p in pub.iterdir()) == files
+    assert len([p for p in (pub / "artifacts").rglob("*") if p.is_file()]) == 2  # 2 videos
+    assert load(url).user_attrs["driver"]["pid"] == os.getpid()  # the live study: untouched
+    assert load("sqlite:///pub/study.db").user_attrs["driver"] is None
+    status_text = (pub / "status.txt").read_text()
+    assert (
+        "driver: not running" in status_text
+        and "copied from sqlite:///runs/ci/study.db" in status_text
+    )
+    published = (pub / "aggregate" / "auc_table.csv").read_text()
+    assert cli.main(["aggregate", str(CI_SPEC), "--storage", "sqlite:///pub/study.db",
+                     "--out", "again", "--no-dashboard"]) == 0  # fmt: skip
+    assert (tmp_path / "again" / "auc_table.csv").read_text() == published
+    capsys.readouterr()
+    assert cli.main(["publish", str(CI_SPEC), "--out", "runs/ci"]) == 2  # onto itself
+    assert cli.main(["publish", str(CI_SPEC), "--storage", "postgresql://u@127.0.0.1/x"]) == 2
+    errors = capsys.readouterr().err.splitlines()
+    assert errors[0].startswith("sweeper publish: ") and "own database" in errors[0]
+    assert "is not SQLite" in errors[1] and len(errors) == 2
 
 
 def test_the_image_control_and_the_oracle_are_methods_like_any_other(tmp_path, monkeypatch, capsys):

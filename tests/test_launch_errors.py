@@ -27,7 +27,8 @@ print(code, [m for m in ("torch", "ray", "optuna", "mujoco", "matplotlib") if m 
       file=sys.stderr)
 """
 
-COMMANDS = ["launch", "status", "aggregate", "confirm", "dashboard", "diagnose", "plan", "rerun"]
+COMMANDS = ["launch", "status", "aggregate", "confirm", "dashboard", "diagnose", "plan", "rerun",
+            "publish"]  # fmt: skip
 
 
 @pytest.mark.parametrize("command", [[], *([c] for c in COMMANDS)])

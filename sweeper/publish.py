@@ -1,0 +1,107 @@
+"""``sweeper publish SPEC [--out DIR]``: a study's database, ledger, videos and report in one
+folder (``docs/studies/<study>`` by default), for anyone to re-aggregate and re-run.
+
+Safe while the study runs, so a long study can be published as it goes:
+
+- ``study.db``: a copy of the SQLite database taken with SQLite's backup API (consistent
+  while the driver writes), one self-contained file (no ``-wal``). The copy is not driven:
+  its driver record is released, so readers of the copy count its RUNNING trials as a
+  relaunch would (not running) wherever and whenever they read it, and the report written
+  here is the report anyone gets by aggregating the copy again.
+- ``status.txt``: ``sweeper status`` of the copy and when it was taken.
+- ``artifacts/``: the trials' videos, when the study keeps them in a local folder.
+- ``aggregate/``: ``sweeper aggregate`` of the copy (nothing saved into it for the
+  dashboard: the copy holds what the driver last saved).
+
+Only SQLite studies: a PostgreSQL study is refused with one line (copy it into SQLite with
+``optuna copy-study`` first). Exit 0, or 2 with one line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import shutil
+import sqlite3
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from sweeper.storage import StorageError, redact, resolve_url, sqlite_path
+
+if TYPE_CHECKING:
+    from sweeper.spec import StudySpec
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The output folder (``sweeper.cli`` adds the spec and --storage)."""
+    parser.add_argument("--out", metavar="DIR", help="the folder (default: docs/studies/<study>)")
+
+
+def copy_database(source: Path, target: Path) -> None:
+    """``source`` copied to ``target`` with SQLite's backup API, as one file (journal mode
+    DELETE), replacing ``target``; the source is opened read-only."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    partial = target.with_name(target.name + ".partial")
+    partial.unlink(missing_ok=True)
+    live = sqlite3.connect(f"file:{source}?mode=ro", uri=True)
+    copy = sqlite3.connect(partial)
+    try:
+        live.backup(copy)
+        copy.execute("PRAGMA journal_mode=DELETE")
+    finally:
+        copy.close()
+        live.close()
+    partial.replace(target)
+
+
+def release_driver(url: str, study: str) -> None:
+    """Mark the study in ``url`` as not driven (its driver record released, as a driver
+    that stops releases it)."""
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    optuna.load_study(study_name=study, storage=url).set_user_attr("driver", None)
+
+
+def run(spec: StudySpec, args: argparse.Namespace) -> int:
+    """``sweeper publish``: exit 0, or 2 with one line."""
+    from sweeper.aggregate import aggregate
+    from sweeper.artifacts import artifact_location
+    from sweeper.status import run as status
+
+    out = Path(args.out) if args.out else Path("docs") / "studies" / spec.study
+    try:
+        source = sqlite_path(resolve_url(spec.storage_url))
+        if source is None:
+            raise StorageError(
+                f"{redact(spec.storage_url)} is not SQLite: copy the study into a SQLite "
+                "file first (optuna copy-study) and publish that with --storage"
+            )
+        if not source.is_file():
+            raise StorageError(f"no database file at {source}: launch the study first")
+        database = out / "study.db"
+        if database.resolve() == source.resolve():
+            raise StorageError(f"{database} is the study's own database: publish elsewhere")
+        copy_database(source, database)
+        url = f"sqlite:///{database}"
+        release_driver(url, spec.study)
+        published = spec.with_overrides(storage=url)
+        with (out / "status.txt").open("w", encoding="utf-8") as stream:
+            if status(published, args, stream) != 0:
+                raise StorageError(f"{database}: its ledger cannot be read (see above)")
+            taken = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+            print(f"copied from {redact(spec.storage_url)} at {taken}", file=stream)
+        videos = Path(artifact_location(spec))
+        copied = videos.is_dir()
+        if copied:
+            shutil.copytree(videos, out / "artifacts", dirs_exist_ok=True)
+        artifacts = str(out / "artifacts") if copied else None
+        result = aggregate(url, spec.study, out / "aggregate", seed=spec.seed, dashboard=False,
+                           artifacts=artifacts)  # fmt: skip
+    except (ValueError, OSError, sqlite3.Error) as e:  # StorageError is a ValueError
+        print(f"sweeper publish: {e}", file=sys.stderr)
+        return 2
+    print(f"published study {spec.study!r} to {out}: study.db, status.txt, "
+          f"{'artifacts/, ' if copied else ''}aggregate/ (report: {result.report})")  # fmt: skip
+    return 0
