@@ -55,20 +55,19 @@ def first_difference(recorded: dict[str, list[float]], rerun: dict[str, list[flo
 
 def machine_lines(recorded: list[dict[str, Any]] | None, here: dict[str, Any]) -> list[str]:
     """The machines the trial's runs were recorded on, this one, and what follows."""
-    if not recorded:
-        return ["recorded on: not recorded (the study ran before machines were recorded)",
-                f"this machine: {describe(here)}"]  # fmt: skip
+    recorded = recorded or []
     lines = [f"recorded on: {describe(m)} (from step {m['from_step']})" for m in recorded]
+    if not recorded:
+        lines.append("recorded on: not recorded (the study ran before machines were recorded)")
+    elif recorded[0]["from_step"] != 0:
+        lines.append(f"the runs before step {recorded[0]['from_step']} were not recorded")
     lines.append(f"this machine: {describe(here)}")
-    if recorded[0]["from_step"] != 0:
-        lines.append("the runs before step {} were not recorded".format(recorded[0]["from_step"]))
-    same = all(_without_step(m) == here for m in recorded)
-    lines.append(
-        "the same machine: the curve should be the recorded one"
-        if same and recorded[0]["from_step"] == 0
-        else "another machine (or unknown): PyTorch's kernels round differently there, so "
-        "the curve may differ (agent/machine.py)"
-    )
+    whole = bool(recorded) and recorded[0]["from_step"] == 0
+    if whole and all({k: v for k, v in m.items() if k != "from_step"} == here for m in recorded):
+        lines.append("the same machine: the curve should be the recorded one")
+    else:
+        lines.append("another machine (or unknown): PyTorch's kernels round differently there, "
+                     "so the curve may differ (agent/machine.py)")  # fmt: skip
     return lines
 
 
@@ -79,10 +78,6 @@ def describe(machine: dict[str, Any]) -> str:
         f"{machine.get('cpu_name', '?')} ({machine.get('cpu', '?')}), kernels "
         f"{machine.get('kernels', '?')}, torch {machine.get('torch', '?')}{gpu}"
     )
-
-
-def _without_step(machine: dict[str, Any]) -> dict[str, Any]:
-    return {k: v for k, v in machine.items() if k != "from_step"}
 
 
 def run(spec: StudySpec, args: argparse.Namespace) -> int:
