@@ -75,14 +75,16 @@ def summarize(results: list[dict[str, halving.MethodReplay]]) -> tuple[float, fl
     return float(survived), float(lost.mean()), float(lost.max()), rows[0].compute_fraction
 
 
-def study_curves(storage: str, study: str) -> tuple[halving.Curves, list[int], int]:
+def study_curves(storage: str, study: str) -> tuple[halving.Curves, list[int], int, int]:
     """The search curves of a study's configurations that every method has finished (every
     seed; a study still running has done some, as its keys run round by round), those
-    configurations, and how many the plan has."""
+    configurations, how many the plan has, and the spec's seed steps."""
     from sweeper.aggregate.frame import load_study_frame, scored, stage_frame, study_info
 
     frame = load_study_frame(storage, study)
-    plan = study_info(frame).attrs.get("plan", [])
+    attrs = study_info(frame).attrs
+    plan = attrs.get("plan", [])
+    seed_steps = int(attrs.get("spec", {}).get("budget", {}).get("seed_steps", 0))
     planned_configs = sorted({int(k.split("/")[1]) for k in plan})
     done = scored(stage_frame(frame, "search"))
     finished = set(done["key"])
@@ -96,19 +98,21 @@ def study_curves(storage: str, study: str) -> tuple[halving.Curves, list[int], i
             trial["step"].astype(int).tolist(),
             trial["success_rate"].astype(float).tolist(),
         )
-    return curves, complete, len(planned_configs)
+    return curves, complete, len(planned_configs), seed_steps
 
 
-def study_schedules(budget: int, grid: int) -> list[tuple[tuple[int, ...], float]]:
+def study_schedules(
+    budget: int, grid: int, seed_steps: int = 0
+) -> list[tuple[tuple[int, ...], float]]:
     """The schedules compared: the default (keep 1/3 at 1/9 and 1/3 of the budget), one rung
-    at 1/4, and keep 1/2 at 1/10 and 1/4; rungs rounded down to the evaluation grid."""
+    at 1/4, and keep 1/2 at 1/10 and 1/4; rungs rounded down to the evaluation grid, none
+    inside the seed phase."""
 
     def on_grid(*fractions: float) -> tuple[int, ...]:
-        steps = [int(budget * f) // grid * grid for f in fractions]
-        return tuple(dict.fromkeys(step for step in steps if step > 0))
+        return halving.rungs_at(fractions, budget, grid, seed_steps)
 
     return [
-        (halving.default_rungs(budget, grid), halving.DEFAULT_KEEP),
+        (halving.default_rungs(budget, grid, seed_steps), halving.DEFAULT_KEEP),
         (on_grid(1 / 4), halving.DEFAULT_KEEP),
         (on_grid(1 / 10, 1 / 4), 0.5),
     ]
@@ -163,7 +167,7 @@ def main() -> None:
                     )
 
     if args.storage:
-        curves, complete, planned = study_curves(args.storage, args.study)
+        curves, complete, planned, seed_steps = study_curves(args.storage, args.study)
         print(f"\nstudy {args.study!r} in {args.storage}")
         print(f"  configurations every method has finished: {complete} of {planned}")
         if len(complete) < 2:
@@ -171,7 +175,7 @@ def main() -> None:
             return
         budget = max(steps[-1] for steps, _ in curves.values())
         grid = int(np.diff(next(iter(curves.values()))[0]).min())
-        for rungs, keep in study_schedules(budget, grid):
+        for rungs, keep in study_schedules(budget, grid, seed_steps):
             sizes = halving.rung_sizes(len(complete), len(rungs) + 1, keep)
             for rule in halving.RULES:
                 name = f"rungs {list(rungs)} keep {keep:.2f} ({sizes}) rule {rule}"

@@ -69,16 +69,21 @@ def rung_sizes(configs: int, rungs: int, keep: float) -> tuple[int, ...]:
     return tuple(sizes)
 
 
-def default_rungs(env_steps: int, grid: int) -> tuple[int, ...]:
-    """The default rungs of a budget: ``DEFAULT_RUNG_FRACTIONS`` of ``env_steps``, each
-    rounded down to a multiple of ``grid`` (where a trial can pause), dropping any that
-    round to 0 or reach the budget."""
-    rungs = []
-    for fraction in DEFAULT_RUNG_FRACTIONS:
-        step = int(env_steps * fraction) // grid * grid
-        if 0 < step < env_steps and step not in rungs:
-            rungs.append(step)
-    return tuple(rungs)
+def rungs_at(
+    fractions: Sequence[float], env_steps: int, grid: int, seed_steps: int = 0
+) -> tuple[int, ...]:
+    """Rungs at ``fractions`` of ``env_steps``, each rounded down to a multiple of ``grid``
+    (where a trial can pause) and at least the first multiple past ``seed_steps`` (before it
+    the agents have not learned: a decision there is one among random policies); those
+    that reach the budget are dropped, and repeats."""
+    first = (seed_steps // grid + 1) * grid
+    steps = [max(int(env_steps * fraction) // grid * grid, first) for fraction in fractions]
+    return tuple(dict.fromkeys(step for step in steps if step < env_steps))
+
+
+def default_rungs(env_steps: int, grid: int, seed_steps: int = 0) -> tuple[int, ...]:
+    """The default rungs of a budget: ``rungs_at(DEFAULT_RUNG_FRACTIONS, ...)``."""
+    return rungs_at(DEFAULT_RUNG_FRACTIONS, env_steps, grid, seed_steps)
 
 
 def env_steps_spent(stops: Sequence[int], sizes: Sequence[int], seeds: int) -> int:

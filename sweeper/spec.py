@@ -275,7 +275,7 @@ class Halving(StrictModel):
         None,
         description="env steps where trials pause, increasing, on the evaluation grid and "
         "episode ends, past budget.seed_steps and below budget.env_steps; null: 1/9 and 1/3 "
-        "of env_steps",
+        "of env_steps, none inside the seed phase",
     )
     keep: float = Field(DEFAULT_KEEP, gt=0, lt=1, description="the fraction that goes on")
     rule: Literal["per_method", "mean_rank"] = Field(
@@ -420,7 +420,8 @@ class StudySpec(StrictModel):
         if self.halving.rungs is not None:
             return self.halving.rungs
         budget = self.budget
-        return default_rungs(budget.env_steps, math.lcm(budget.eval_every, EPISODE_STEPS))
+        grid = math.lcm(budget.eval_every, EPISODE_STEPS)
+        return default_rungs(budget.env_steps, grid, budget.seed_steps)
 
     @model_validator(mode="after")
     def _videos_on_grid(self) -> StudySpec:

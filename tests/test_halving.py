@@ -27,6 +27,10 @@ def test_env_steps_spent_by_hand():
 def test_default_rungs_are_on_the_grid_below_the_budget():
     assert halving.default_rungs(20000, 1000) == (2000, 6000)
     assert halving.default_rungs(15000, 1000) == (1000, 5000)
+    # never inside the random-action seed phase (fetch_reach_cpu: 1,000 seed steps)
+    assert halving.default_rungs(15000, 1000, seed_steps=1000) == (2000, 5000)
+    assert halving.default_rungs(20000, 1000, seed_steps=1000) == (2000, 6000)
+    assert halving.default_rungs(9000, 1000, seed_steps=2500) == (3000,)
     assert halving.default_rungs(900, 1000) == ()
 
 
@@ -128,8 +132,11 @@ def test_a_spec_halving_section_enters_the_plan_and_its_hash_only_when_present()
     assert (
         build_plan(_halving_spec(rungs=[200, 400], keep=0.34, rule="mean_rank")).hash != plan.hash
     )
+    # the default rungs: 1/9 and 1/3 of 900 on the grid, 100 and 300; the first is the end
+    # of the 100 seed steps, so it moves to the first evaluation past them
+    assert build_plan(_halving_spec()).schedule.stops == (200, 300, 900)
     with pytest.raises(SpecError, match=r"past budget\.seed_steps"):
-        _halving_spec()  # the default rungs, 1/9 and 1/3 of 900: 100 is not past seed_steps
+        _halving_spec(rungs=[100])
 
 
 def _plain_spec(**changes):
