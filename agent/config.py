@@ -188,7 +188,9 @@ class TrialResult:
     ``video_seconds`` the wall time spent filming and encoding episode videos (included in
     ``seconds``; the runs that recorded them); ``machines`` one ``agent.machine.describe``
     per run of the trial with its ``from_step``, the first run's 0 (runs before a
-    checkpoint written by code older than this field are not listed).
+    checkpoint written by code older than this field are not listed); ``encoder_fit``
+    what fitting a learned reward encoder gave (``latent_dim``, ``active_dims``, the last
+    epoch's ``loss``, ``recon`` and ``kl``, ``seconds``), empty for the others.
     """
 
     steps: tuple[int, ...]
@@ -202,3 +204,4 @@ class TrialResult:
     reward_scale: float = 1.0
     video_seconds: float = 0.0
     machines: tuple[dict[str, Any], ...] = ()
+    encoder_fit: dict[str, float] = field(default_factory=dict)

@@ -79,11 +79,14 @@ def _uniform_action(env: Any, rng: np.random.Generator) -> np.ndarray:
     return rng.uniform(space.low, space.high).astype(space.dtype)
 
 
-def build_encoder(config: TrialConfig, image_size: int, device: torch.device) -> Any:
-    """The trial's reward encoder, fitted on random-policy frames when it learns; None for
-    the methods that use the true reward."""
+def build_encoder(
+    config: TrialConfig, image_size: int, device: torch.device
+) -> tuple[Any, dict[str, float]]:
+    """The trial's reward encoder, fitted on random-policy frames when it learns (None for
+    the methods that use the true reward), and what its fit gave (``TrialResult.encoder_fit``;
+    empty without a fit)."""
     if config.method in TRUE_REWARD_METHODS:
-        return None
+        return None, {}
     if config.method not in encoders.encoder_names():
         names = ", ".join((*encoders.encoder_names(), *TRUE_REWARD_METHODS))
         raise ValueError(f"method must be one of {names}; got {config.method!r}")
@@ -91,9 +94,11 @@ def build_encoder(config: TrialConfig, image_size: int, device: torch.device) ->
     encoder = encoders.make_encoder(
         config.method, shape, config.seed, str(device), **config.encoder_params
     )
-    if encoder.needs_fit:
-        encoder.fit(collect_random_images(config, encoder.num_images), progress=False)
-    return encoder
+    if not encoder.needs_fit:
+        return encoder, {}
+    fit = encoder.fit(collect_random_images(config, encoder.num_images), progress=False)
+    summary = {"latent_dim": encoder.dim, "loss": fit.losses[-1], **fit.extra}
+    return encoder, {**summary, "seconds": fit.seconds}
 
 
 def collect_random_images(config: TrialConfig, num_images: int) -> np.ndarray:
@@ -247,7 +252,7 @@ class _Trial:
         self.rng = np.random.default_rng(_seed(config.seed, 0))  # random actions, replay sampling
         keys = ("state", "goal_state") if config.method == "state" else ("image", "goal_image")
         self.keys = keys  # the observation's and the goal's key in the env's observations
-        self.encoder = build_encoder(config, env.image_size, device)
+        self.encoder, self.encoder_fit = build_encoder(config, env.image_size, device)
         self.scale = measure_reward_scale(config, self.encoder)
         env.reset(seed=_seed(config.seed, 1))  # seeds the env's generator; episodes reset() later
         self.eval_seeds = [_seed(config.seed, 100 + i) for i in range(config.eval_episodes)]
@@ -435,4 +440,5 @@ class _Trial:
             reward_scale=self.scale,
             video_seconds=self.video_seconds,
             machines=tuple(self.machines()),
+            encoder_fit=self.encoder_fit,
         )

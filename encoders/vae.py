@@ -5,6 +5,11 @@ Both minimise, per image, ``||x - decode(z)||^2 + beta * KL(q(z|x) || N(0, I))``
 pixels), by Adam on shuffled minibatches. The trial collects ``num_images`` frames with a
 uniform random policy and calls ``fit``; the encoder only stores ``num_images`` so the
 trial knows how many.
+
+A fit reports its last epoch's reconstruction error and KL, and how many latent dimensions
+are active (``active_dims``): a beta-VAE whose KL term wins collapses onto its prior, its
+posterior mean barely moves with the image, and the reward ``-||mu(o') - mu(o_g)||`` is
+then mostly noise, however ``reward_scale: auto`` rescales it.
 """
 
 from __future__ import annotations
@@ -20,6 +25,16 @@ from torch import nn
 from encoders.base import FitReport
 from encoders.options import VAEOptions
 from encoders.torch_base import TorchEncoder, images_to_tensor, seeded
+
+#: a latent dimension is active when the variance of its posterior mean over the data exceeds
+#: this (Burda, Grosse & Salakhutdinov 2016, "Importance Weighted Autoencoders", sec. 5.2)
+ACTIVE_VARIANCE = 0.01
+
+
+def active_dims(means: np.ndarray, threshold: float = ACTIVE_VARIANCE) -> int:
+    """How many columns of the posterior means [N, D] vary over the N images by more than
+    ``threshold`` (variance): the latent dimensions the encoding uses."""
+    return int((np.var(np.asarray(means, np.float64), axis=0) > threshold).sum())
 
 
 class _BetaVAE(TorchEncoder):
@@ -72,7 +87,9 @@ class _BetaVAE(TorchEncoder):
 
     def fit(self, images: np.ndarray, progress: bool = True) -> FitReport:
         """Train for ``epochs`` on ``images`` (uint8 [N,H,W,C]); one stderr line per epoch
-        unless ``progress=False``. Deterministic given the seed on CPU."""
+        unless ``progress=False``. Deterministic given the seed on CPU. The report's extra:
+        the last epoch's ``recon`` and ``kl``, and ``active_dims`` of ``latent_dim`` on
+        ``images``."""
         images = self.check_images(images)
         if len(images) == 0:
             raise ValueError("fit() needs at least one image")
@@ -108,11 +125,18 @@ class _BetaVAE(TorchEncoder):
                     flush=True,
                 )
         self.fitted = True
+        active = active_dims(self.encode(images))
+        if progress:
+            print(
+                f"[{self.name}] active latent dims {active} of {self.latent_dim}",
+                file=sys.stderr,
+                flush=True,
+            )
         return FitReport(
             epochs=self.epochs,
             losses=tuple(losses),
             seconds=time.perf_counter() - start,
-            extra={"recon": float(mean_recon), "kl": float(mean_kl)},
+            extra={"recon": float(mean_recon), "kl": float(mean_kl), "active_dims": active},
         )
 
 

@@ -372,6 +372,8 @@ def record_result(store: StudyStore, job: Job, result: TrialResult) -> None:
         "video_seconds": result.video_seconds,
         "machines": list(result.machines),
     }
+    if result.encoder_fit:
+        attrs["encoder_fit"] = result.encoder_fit
     if result.outcome == Outcome.DIVERGED:
         attrs["diverged_step"] = result.diverged_step
         attrs["diverged_loss"] = result.diverged_loss

@@ -81,9 +81,16 @@ def write_synthetic_study(
         skill = 0.3 + 0.4 * methods.index(method) / max(len(methods) - 1, 1)
         params = dict(sac[int(config_id)])
         distributions = {k: CategoricalDistribution(SAC_CHOICES[k]) for k in params}
+        fit = {}
         if method == "vae":
             params["vae.beta"] = float(rng.choice([1.0, 5.0]))
             distributions["vae.beta"] = CategoricalDistribution((1.0, 5.0))
+            collapsed = params["vae.beta"] == 5.0  # what the trial's fit gave: beta 5 collapsed
+            fit = {
+                "latent_dim": 8,
+                "active_dims": 0 if collapsed else 6,
+                "kl": 0.0 if collapsed else 4.0,
+            }
         progress = grid / grid[-1]
         success = np.clip(skill * progress + rng.normal(0, 0.05, grid.size), 0, 1).round(2)
         curve = {
@@ -103,7 +110,10 @@ def write_synthetic_study(
             "attempts": 1,
             "outcome": "completed",
             "seconds": 60.0 * (1 + methods.index(method)) + int(config_id),
+            "reward_scale": 40.0 if fit.get("active_dims") == 0 else 1.0,
         }
+        if fit:
+            attrs["encoder_fit"] = fit
         state, end = TrialState.COMPLETE, grid.size
         if key == special.diverged:
             alive = np.arange(grid.size) < grid.size // 2

@@ -277,7 +277,14 @@ def test_encoder_methods(method: str) -> None:
     config = tiny(
         method=method, total_steps=50, eval_every=50, encoder_params=params.get(method, {})
     )
-    assert agent.train(config).outcome == "completed"
+    result = agent.train(config)
+    assert result.outcome == "completed"
+    if method == "vae":  # what the fit gave, for the user attr encoder_fit
+        fit = result.encoder_fit
+        assert set(fit) == {"latent_dim", "loss", "recon", "kl", "active_dims", "seconds"}
+        assert fit["latent_dim"] == 8 and 0 <= fit["active_dims"] <= 8 and fit["seconds"] > 0
+    else:
+        assert result.encoder_fit == {}
 
 
 def test_checkpoint_at_an_object_store_uri() -> None:

@@ -181,6 +181,33 @@ def test_curves_are_means_over_done_trials(synthetic):
     pd.testing.assert_frame_equal(written, curves, check_dtype=False)
 
 
+def test_the_report_says_which_learned_encoder_fits_collapsed(synthetic):
+    url, out = synthetic
+    frame = pd.read_csv(out / "frame.csv")
+    current = current_trials(trials_of(url, "syn")).values()
+    done = {t.number: t for t in current if t.state == TrialState.COMPLETE}
+    vae = [t for t in done.values() if t.user_attrs["method"] == "vae"]
+    collapsed = sum(t.user_attrs["encoder_fit"]["active_dims"] == 0 for t in vae)
+    assert 0 < collapsed < len(vae)  # the fixture has both kinds
+    rows = frame.drop_duplicates("trial").set_index("trial")
+    for number, trial in done.items():
+        fit = trial.user_attrs.get("encoder_fit", {})
+        assert rows.loc[number, "reward_scale"] == trial.user_attrs["reward_scale"]
+        if fit:
+            assert rows.loc[number, "fit_active_dims"] == fit["active_dims"]
+        else:
+            assert np.isnan(rows.loc[number, "fit_active_dims"])
+    report = (out / "report.md").read_text()
+    section = report.split("## Learned encoders' fits")[1]
+    (row,) = [line for line in section.splitlines() if line.startswith("| vae |")]
+    cells = [cell.strip() for cell in row.strip("|").split("|")]
+    assert cells[1] == str(len(vae)) and cells[3] == str(collapsed)
+    assert sorted(cells[2].split(", ")) == sorted(
+        f"{t.user_attrs['encoder_fit']['active_dims']}/8" for t in vae
+    )
+    assert "| pixel |" not in section.split("Data:")[0]  # learning-free: no fit
+
+
 def test_written_files_and_dashboard_note(synthetic):
     url, out = synthetic
     frame = pd.read_csv(out / "frame.csv")

@@ -199,7 +199,30 @@ def test_vae_loss_goes_down_and_fit_is_deterministic(name: str) -> None:
     assert reports[0].epochs == 8 and len(losses) == 8
     assert losses[-1] < 0.7 * losses[0]
     assert reports[0].losses == reports[1].losses  # same seed, same training on CPU
-    assert set(reports[0].extra) == {"recon", "kl"}
+    assert set(reports[0].extra) == {"recon", "kl", "active_dims"}
+
+
+def test_active_dims_counts_the_latent_dimensions_that_vary_over_the_data() -> None:
+    from encoders.vae import ACTIVE_VARIANCE, active_dims
+
+    rng = np.random.default_rng(0)
+    means = np.stack([rng.normal(0, 1, 500), np.full(500, 3.0), rng.normal(0, 0.01, 500)], 1)
+    assert active_dims(means) == 1  # the constant and the barely moving one are inactive
+    assert active_dims(means, threshold=1e-5) == 2
+    assert active_dims(np.zeros((4, 16))) == 0 and ACTIVE_VARIANCE == 0.01
+
+
+@pytest.mark.parametrize("name", ["vae", "cvae"])
+def test_a_fit_collapsed_onto_its_prior_has_no_active_dimension(name: str) -> None:
+    """With a KL weight that outweighs every pixel the posterior mean stops moving with the
+    image; with a small one the same data keeps latent dimensions in use."""
+    colours = np.random.default_rng(0).integers(0, 256, (16, 1, 1, 3), dtype=np.uint8)
+    x = np.ascontiguousarray(np.broadcast_to(colours, (16, 32, 32, 3)))
+    options = {"epochs": 30, "batch_size": 8, "lr": 3e-3, "latent_dim": 8}
+    used = make_encoder(name, (32, 32, 3), beta=0.1, **options).fit(x, progress=False)
+    collapsed = make_encoder(name, (32, 32, 3), beta=1e4, **options).fit(x, progress=False)
+    assert used.extra["active_dims"] >= 1
+    assert collapsed.extra["active_dims"] == 0 and collapsed.extra["kl"] < 0.01
 
 
 def test_fit_prints_progress(capsys: pytest.CaptureFixture) -> None:

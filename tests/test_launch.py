@@ -141,13 +141,19 @@ def test_launch_ci_end_to_end_then_status_then_a_relaunch_reruns_nothing(
 
 def test_the_image_control_and_the_oracle_are_methods_like_any_other(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    spec = write_ci_spec(tmp_path / "controls.yaml", methods={"true_reward": {}, "state": {}})
+    vae = {"latent_dim": 8, "beta": 1.0, "lr": 1e-3, "epochs": 1, "num_images": 64}
+    methods = {"true_reward": {}, "state": {}, "vae": vae}
+    spec = write_ci_spec(tmp_path / "controls.yaml", methods=methods)
     assert cli.main(["launch", str(spec)]) == 0
     trials = load("sqlite:///runs/ci/study.db").get_trials()
-    assert sorted(t.user_attrs["key"] for t in trials) == ["state/0/0", "true_reward/0/0"]
+    keys = ["state/0/0", "true_reward/0/0", "vae/0/0"]
+    assert sorted(t.user_attrs["key"] for t in trials) == keys
     for trial in trials:
         assert trial.state == TrialState.COMPLETE and curve_of(trial)["step"] == GRID
         assert trial.user_attrs["reward_scale"] > 0  # the spec's default: "auto", measured
+        fit = trial.user_attrs.get("encoder_fit")  # a learned encoder's fit, as it went
+        assert (fit is not None) == (trial.user_attrs["method"] == "vae")
+        assert fit is None or (fit["latent_dim"] == 8 and 0 <= fit["active_dims"] <= 8)
     assert cli.main(["aggregate", str(spec)]) == 0
     table = (tmp_path / "runs" / "ci" / "aggregate" / "auc_table.csv").read_text()
     assert "true_reward" in table and "state" in table

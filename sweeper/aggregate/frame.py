@@ -34,7 +34,13 @@ TRIAL_COLUMNS = (
     "diverged_loss",
     "error",
     "seconds",
+    "reward_scale",
+    "fit_latent_dim",
+    "fit_active_dims",
+    "fit_kl",
 )
+#: the ``fit_`` columns: from the user attr ``encoder_fit`` of trials with a learned encoder
+FIT_COLUMNS = {"fit_latent_dim": "latent_dim", "fit_active_dims": "active_dims", "fit_kl": "kl"}
 
 
 @dataclass(frozen=True)
@@ -116,6 +122,8 @@ def _build_frame(study_name: str, raw: StudyRows) -> pd.DataFrame:
         attrs = attrs_by_trial.get(trial_id, {})
         row = {c: attrs.get(c) for c in TRIAL_COLUMNS}
         row["stage"] = attrs.get("stage") or stage_of(attrs.get("key"))
+        fit = attrs.get("encoder_fit") or {}
+        row.update({column: fit.get(name) for column, name in FIT_COLUMNS.items()})
         row.update(trial=int(number), state=str(state), auc=auc.get(trial_id))
         mine = params_by_trial.get(trial_id, {})
         if attrs.get("key") is not None:  # a plan key's trial: its constants too
@@ -161,9 +169,11 @@ def _build_frame(study_name: str, raw: StudyRows) -> pd.DataFrame:
     frame = pd.concat([frame, pd.DataFrame(values)], axis=1)
     params_columns = [c for c in frame.columns if c.startswith("params_")]
     frame = frame[[*TRIAL_COLUMNS, "step", *metrics, *sorted(params_columns)]]
-    for column in ("config_id", "seed", "attempts", "diverged_step"):
-        frame[column] = frame[column].astype("Int64")
-    frame["auc"] = frame["auc"].astype("float64")
+    for column in ("config_id", "seed", "attempts", "diverged_step", *FIT_COLUMNS):
+        if column != "fit_kl":
+            frame[column] = frame[column].astype("Int64")
+    for column in ("auc", "reward_scale", "fit_kl"):
+        frame[column] = frame[column].astype("float64")
     current = set(current_numbers(zip(head["key"], head["trial"], strict=True)).values())
     frame["counted"] = frame["key"].notna() & frame["trial"].isin(current)
     frame.attrs["study"] = StudyInfo(study_name, study, tuple(metrics), tuple(sorted(searched)))

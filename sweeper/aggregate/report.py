@@ -9,7 +9,7 @@ from typing import Any
 
 import pandas as pd
 
-from sweeper.aggregate.frame import random_success, study_info, trial_rows
+from sweeper.aggregate.frame import random_success, scored, study_info, trial_rows
 from sweeper.aggregate.tables import CONFIDENCE, RESAMPLES, Tables
 
 
@@ -198,6 +198,39 @@ the done trials (every run of a trial, the encoder fit included), and the CPU an
 reserved for them (wall x the spec's cpus_per_trial, gpus_per_trial)."""
 
 
+def fits_markdown(frame: pd.DataFrame) -> str:
+    """Per method with a learned reward encoder, what its trials' fits gave: active latent
+    dimensions (``encoders.vae.active_dims``), the last epoch's KL and the reward scale,
+    and how many fits collapsed (no active dimension: the reward is noise, whatever its
+    scale); "" when no trial recorded a fit."""
+    fits = trial_rows(scored(frame)).dropna(subset=["fit_active_dims"])
+    if fits.empty:
+        return ""
+    lines = [
+        "## Learned encoders' fits",
+        "",
+        "A latent dimension is active when its posterior mean varies over the fit's frames "
+        "(variance above 0.01, `encoders.vae.ACTIVE_VARIANCE`, after Burda et al. 2016); a "
+        "fit without any collapsed onto its prior, and `reward_scale: auto` then magnifies "
+        "what is left of the reward.",
+        "",
+        "| method | fits | active dims (of latent) | collapsed | KL, last epoch (median) "
+        "| reward scale (median) |",
+        "|---|---:|---|---:|---:|---:|",
+    ]
+    for method, rows in fits.groupby("method", sort=False):
+        active = ", ".join(
+            f"{a}/{d}" for a, d in zip(rows["fit_active_dims"], rows["fit_latent_dim"], strict=True)
+        )
+        collapsed = int((rows["fit_active_dims"] == 0).sum())
+        lines.append(
+            f"| {method} | {len(rows)} | {active} | {collapsed} "
+            f"| {_fmt(float(rows['fit_kl'].median()), 2)} "
+            f"| {_fmt(float(rows['reward_scale'].median()), 2)} |"
+        )
+    return "\n".join(lines)
+
+
 def report_markdown(frame: pd.DataFrame, tables: Tables, driver_alive: bool) -> str:
     """The study's report.md: ledger, statistics, figures, data files."""
     study = study_info(frame).attrs
@@ -261,6 +294,10 @@ def report_markdown(frame: pd.DataFrame, tables: Tables, driver_alive: bool) -> 
         "",
         "![every trial's curves coloured by AUC](trials.png)",
         "",
+    ]
+    fits = fits_markdown(frame)
+    lines += [fits, ""] if fits else []
+    lines += [
         "Data: `frame.csv` (one row per trial and evaluation step), `curves.csv` (mean, std), "
         "`efficiency.csv` (IQM and band), `profiles.csv`, `auc_table.csv`, `improvement.csv`.",
         "",
