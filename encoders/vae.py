@@ -8,8 +8,8 @@ trial knows how many.
 
 A fit reports its last epoch's reconstruction error and KL, and how many latent dimensions
 are active (``active_dims``): a beta-VAE whose KL term wins collapses onto its prior, its
-posterior mean barely moves with the image, and the reward ``-||mu(o') - mu(o_g)||`` is
-then mostly noise, however ``reward_scale: auto`` rescales it.
+posterior mean barely moves with the image, and the reward ``-||mu(o') - mu(o_g)||`` rests
+on what little it moves, however ``reward_scale: auto`` rescales it.
 """
 
 from __future__ import annotations

@@ -201,8 +201,7 @@ reserved for them (wall x the spec's cpus_per_trial, gpus_per_trial)."""
 def fits_markdown(frame: pd.DataFrame) -> str:
     """Per method with a learned reward encoder, what its trials' fits gave: active latent
     dimensions (``encoders.vae.active_dims``), the last epoch's KL and the reward scale,
-    and how many fits collapsed (no active dimension: the reward is noise, whatever its
-    scale); "" when no trial recorded a fit."""
+    and how many fits collapsed (no active dimension); "" when no trial recorded a fit."""
     fits = trial_rows(scored(frame)).dropna(subset=["fit_active_dims"])
     if fits.empty:
         return ""
@@ -210,9 +209,10 @@ def fits_markdown(frame: pd.DataFrame) -> str:
         "## Learned encoders' fits",
         "",
         "A latent dimension is active when its posterior mean varies over the fit's frames "
-        "(variance above 0.01, `encoders.vae.ACTIVE_VARIANCE`, after Burda et al. 2016); a "
-        "fit without any collapsed onto its prior, and `reward_scale: auto` then magnifies "
-        "what is left of the reward.",
+        "(variance above 0.01, `encoders.vae.ACTIVE_VARIANCE`, against the prior's 1; Burda "
+        "et al. 2016). A fit without any collapsed onto its prior: its encoding barely moves "
+        "with the image, and the reward rests on what little it moves, magnified to about 1 "
+        "by `reward_scale: auto`.",
         "",
         "| method | fits | active dims (of latent) | collapsed | KL, last epoch (median) "
         "| reward scale (median) |",
