@@ -6,7 +6,8 @@ Default: the published study, ``docs/studies/fetch_reach_cpu/study.db``. Prints 
 table, per method: done of planned trials, IQM AUC with its 95 % interval, the IQM of the
 final success rate (the last evaluation), how many trials reach success 0.8 at some
 evaluation, and the paired probability of improvement over PIXEL with its interval and
-number of pairs; then one verdict per thesis claim:
+number of pairs; the random agent's success rate (the floor); then one verdict per thesis
+claim:
 
 - PIXEL solves FetchReach; CONV solves it: "solves" is the IQM final success rate >= 0.8
   (the bar of ``bench_learning.py``; the thesis' Figure 4.1 shows success near 1);
@@ -51,7 +52,13 @@ def main() -> None:
     import numpy as np
 
     from sweeper import stats
-    from sweeper.aggregate.frame import load_study_frame, scored, stage_frame, study_info
+    from sweeper.aggregate.frame import (
+        load_study_frame,
+        random_success,
+        scored,
+        stage_frame,
+        study_info,
+    )
     from sweeper.aggregate.report import MIN_RELIABLE, _fmt
     from sweeper.aggregate.tables import study_tables
 
@@ -96,7 +103,11 @@ def main() -> None:
             f"| {_fmt(final[method], 2)} | {hits} of {len(mine)} "
             f"| {versus(method, 'pixel') if method != 'pixel' else '–'} |"
         )
-    print(f"\n\\* fewer than {MIN_RELIABLE} trials or pairs: not reliable.\n")
+    print(f"\n\\* fewer than {MIN_RELIABLE} trials or pairs: not reliable.", end=" ")
+    chance = random_success(frame)
+    if chance is not None:  # the floor: what uniform random actions achieve
+        print(f"A uniform random policy's success rate: {chance:.2f}.", end="")
+    print("\n")
 
     def solves(method: str) -> str:
         value = final.get(method, float("nan"))
