@@ -169,9 +169,9 @@ def _build_frame(study_name: str, raw: StudyRows) -> pd.DataFrame:
     frame = pd.concat([frame, pd.DataFrame(values)], axis=1)
     params_columns = [c for c in frame.columns if c.startswith("params_")]
     frame = frame[[*TRIAL_COLUMNS, "step", *metrics, *sorted(params_columns)]]
-    for column in ("config_id", "seed", "attempts", "diverged_step", *FIT_COLUMNS):
-        if column != "fit_kl":
-            frame[column] = frame[column].astype("Int64")
+    for column in ("config_id", "seed", "attempts", "diverged_step", "fit_latent_dim",
+                   "fit_active_dims"):  # fmt: skip
+        frame[column] = frame[column].astype("Int64")
     for column in ("auc", "reward_scale", "fit_kl"):
         frame[column] = frame[column].astype("float64")
     current = set(current_numbers(zip(head["key"], head["trial"], strict=True)).values())
