@@ -11,7 +11,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from sweeper.spec import StudySpec, check_files, positive_int
+from sweeper.spec import SpecError, StudySpec, check_files, positive_int
+from sweeper.spec_errors import suggest
 
 if TYPE_CHECKING:
     from sweeper.plan import Plan
@@ -37,6 +38,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "weights_path): their trials stay left in the study for a launch with the files; "
         "the other methods run their full budget",
     )
+    parser.add_argument(
+        "--only",
+        metavar="METHODS",
+        help="run only these methods (comma-separated) in this launch, e.g. one arm of a "
+        "study at a time; the others' trials stay left in the study, and the plan is whole",
+    )
+
+
+def only_skip(spec: StudySpec, only: str | None) -> frozenset[str]:
+    """The methods ``--only METHODS`` leaves out; raises SpecError on an unknown name."""
+    if only is None:
+        return frozenset()
+    names = [name.strip() for name in only.split(",") if name.strip()]
+    for name in names:
+        if name not in spec.methods:
+            raise SpecError(
+                f"--only: no method {name!r} in the spec; "
+                f"{suggest(name, list(spec.methods))}methods: {', '.join(spec.methods)}"
+            )
+    if not names:
+        raise SpecError(f"--only: name one or more methods, e.g. {next(iter(spec.methods))}")
+    return frozenset(spec.methods) - frozenset(names)
 
 
 def run(spec: StudySpec, args: argparse.Namespace) -> int:
@@ -50,12 +73,13 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
             try:
                 spec, plan = prepare(spec, address=args.address, max_concurrent=args.max_concurrent)
                 skip = check_files(spec, str(Path(args.spec)), args.skip_missing)
+                left_out = only_skip(spec, args.only)
             except ValueError as e:  # SpecError, StorageError
                 print(f"sweeper launch: {e}", file=sys.stderr)
                 return 2
             if skip:
                 print("\n".join(skip_lines(spec, plan, skip)), file=sys.stderr)
-            return launch(spec, plan, skip=skip)
+            return launch(spec, plan, skip=skip | left_out)
         except KeyboardInterrupt:  # outside the driver loop, which handles its own
             print("\nsweeper launch: stopped", file=sys.stderr)
             return EXIT_INTERRUPTED

@@ -375,12 +375,13 @@ def without(plan: Plan, skip: frozenset[str]) -> Plan:
 
 
 def skipped_note(plan: Plan, skip: frozenset[str]) -> str:
-    """What a launch's summary line adds when it skips methods (``--skip-missing``)."""
+    """What a launch's summary line adds when it skips methods (``--skip-missing``,
+    ``--only``)."""
     if not skip:
         return ""
     skipped = sum(e.method in skip for e in plan.entries)
     methods = ", ".join(sorted(skip))
-    return f"; {methods} skipped ({skipped} trials, left for a launch with the files)"
+    return f"; {methods} not run now ({skipped} trials, left for a later launch)"
 
 
 def start_estimate(plan: Plan, study: tuple[list[Any], dict[str, Any]] | None) -> InBackground:

@@ -18,9 +18,11 @@ import dataclasses
 import hashlib
 import json
 from dataclasses import dataclass
+from collections.abc import Mapping
 from typing import Any
 
 from agent.config import RUNTIME_FIELDS, SACConfig, TrialConfig
+from encoders.options import default_space
 from sweeper.halving import Schedule, rung_sizes
 from sweeper.space import derive_rng, param_value, sample_configs
 from sweeper.spec import StudySpec
@@ -59,6 +61,22 @@ class Plan:
         return [e.key for e in self.entries]
 
 
+#: appendix A.1's SAC settings (``SACConfig``'s defaults and search choices) and its
+#: gradient samples per env step: batch 256 x 2 updates
+A1 = SACConfig()
+A1_SAMPLES = A1.batch_size * A1.updates_per_step
+_A1_CHOICES = default_space(SACConfig)
+
+
+def outside_a1(values: Mapping[str, Any]) -> list[str]:
+    """``"name value (A.1: choices)"`` for each SAC value not among A.1's choices."""
+    return [
+        f"{name} {param_value(value)} (A.1: {' | '.join(str(param_value(c)) for c in choices)})"
+        for name, value in values.items()
+        if value not in (choices := _A1_CHOICES[name])
+    ]
+
+
 def trial_key(method: str, config_id: int, seed: int) -> str:
     """The key of one trial: ``"{method}/{config_id}/{seed}"``."""
     return f"{method}/{config_id}/{seed}"
@@ -68,6 +86,17 @@ def run_order(entry: PlanEntry) -> tuple[int, int, str]:
     """The order a driver starts trials in: config by config, seed by seed, every method
     of a round together (so a study stopped early is still paired)."""
     return entry.config_id, entry.seed, entry.method
+
+
+def sac_param_choices(spec: StudySpec) -> dict[str, tuple[bool | int | float | str, ...]]:
+    """Each SAC param's choices in the study: the space's, and the values methods fix
+    (``methods.<name>.sac``), so every trial registers one distribution per param."""
+    choices = {name: [param_value(c) for c in cs] for name, cs in spec.sac.space().items()}
+    for method in sorted(spec.methods):
+        for name, value in spec.methods[method].sac.items():
+            if param_value(value) not in choices[name]:
+                choices[name].append(param_value(value))
+    return {name: tuple(cs) for name, cs in choices.items()}
 
 
 def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
@@ -81,7 +110,7 @@ def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
     """
     sac_space = spec.sac.space()
     sac_configs = sample_configs(sac_space, spec.trials_per_method, derive_rng(spec.seed, "sac"))
-    sac_choices = {name: tuple(param_value(c) for c in cs) for name, cs in sac_space.items()}
+    sac_choices = sac_param_choices(spec)
 
     drafts = []  # (method, config_id, seed, params, choices, TrialConfig without checkpoint_dir)
     for method in sorted(spec.methods):
@@ -92,7 +121,11 @@ def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
             space, spec.trials_per_method, derive_rng(spec.seed, f"method:{encoder}")
         )
         choices = sac_choices | {f"{method}.{k}": cs for k, cs in space.items()}
-        for config_id, (sac, options) in enumerate(zip(sac_configs, method_configs, strict=True)):
+        fixed_sac = spec.methods[method].sac
+        for config_id, (sampled, options) in enumerate(
+            zip(sac_configs, method_configs, strict=True)
+        ):
+            sac = sampled | fixed_sac  # the method's own SAC values replace the sampled ones
             params = {name: param_value(v) for name, v in sac.items()}
             params |= {f"{method}.{k}": v for k, v in options.items()}
             for seed in sorted(spec.seeds):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from fractions import Fraction
 from typing import TYPE_CHECKING, TextIO
 
 from sweeper.estimate import (
@@ -23,7 +24,7 @@ from sweeper.estimate import (
     summary_lines,
 )
 from sweeper.halving import env_steps_spent
-from sweeper.plan import Plan, build_plan
+from sweeper.plan import A1, A1_SAMPLES, Plan, build_plan, outside_a1
 from sweeper.storage import redact
 from sweeper.study import NoStudy, open_study, stored_files
 
@@ -78,9 +79,36 @@ def plan_lines(
             f"{method:<{width}}  {len(entries):>6}  {len(entries) * steps:>11,}  "
             f"{finished:>4}  {format_duration(mean):>13}  {source}"
         )
+    lines += budget_lines(spec, plan)
     if plan.schedule is not None:
         lines += halving_lines(plan, estimates, len(spec.seeds))
     return lines + summary_lines(plan.entries, done, estimates, spec.execution, calibration_seconds)
+
+
+def budget_lines(spec: StudySpec, plan: Plan) -> list[str]:
+    """Each method's gradient samples per env step (batch x updates per step) against
+    appendix A.1's, and the SAC values outside A.1: the study's constants once, then each
+    method's own fixed values (``methods.<name>.sac``)."""
+    lines = [
+        f"gradient samples per env step (batch x updates per step; A.1: {A1.batch_size} x "
+        f"{A1.updates_per_step} = {A1_SAMPLES}):"
+    ]
+    shared = outside_a1({k: cs[0] for k, cs in spec.sac.space().items() if len(cs) == 1})
+    width = max(len(m) for m in spec.methods)
+    for method in spec.methods:
+        configs = [e.trial_config.sac for e in plan.entries if e.method == method]
+        samples = sorted({c.batch_size * c.updates_per_step for c in configs})
+        shown = " | ".join(
+            f"{c.batch_size} x {c.updates_per_step} = {c.batch_size * c.updates_per_step}"
+            for c in {(c.batch_size, c.updates_per_step): c for c in configs}.values()
+        )
+        fraction = " | ".join(str(Fraction(n, A1_SAMPLES)) for n in samples)
+        own = outside_a1(spec.methods[method].sac)
+        mark = f"; outside A.1: {', '.join(own)}" if own else ""
+        lines.append(f"  {method:<{width}}  {shown}  ({fraction} of A.1){mark}")
+    if shared:
+        lines.append(f"  every method, outside A.1: {', '.join(shared)}")
+    return lines
 
 
 def halving_lines(plan: Plan, estimates: dict[str, TrialEstimate], seeds: int) -> list[str]:

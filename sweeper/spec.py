@@ -360,7 +360,9 @@ class StudySpec(StrictModel):
         """Each method as a spec writes it (a variant with its ``encoder``), so a dumped
         spec parses back to the same spec."""
         return {
-            name: ({} if m.encoder == name else {"encoder": m.encoder}) | m.space
+            name: ({} if m.encoder == name else {"encoder": m.encoder})
+            | m.space
+            | ({"sac": dict(m.sac)} if m.sac else {})
             for name, m in methods.items()
         }
 
@@ -373,6 +375,20 @@ class StudySpec(StrictModel):
                 f"postgresql+psycopg://user@host/db, or null; got {storage!r}"
             )
         return storage
+
+    @model_validator(mode="after")
+    def _method_batch_fits_buffer(self) -> StudySpec:
+        for name, method in self.methods.items():
+            if not method.sac:
+                continue
+            batch = method.sac.get("batch_size", max(self.sac.batch_size))
+            capacity = method.sac.get("buffer_capacity", min(self.sac.buffer_capacity))
+            if batch > capacity:
+                raise spec_error(
+                    f"batch_size {batch} > buffer_capacity {capacity} for this method",
+                    at=f"methods.{name}.sac.batch_size",
+                )
+        return self
 
     @model_validator(mode="after")
     def _plan_size(self) -> StudySpec:

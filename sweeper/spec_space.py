@@ -26,7 +26,7 @@ from pydantic import (
     model_validator,
 )
 
-from agent.config import TRUE_REWARD_METHODS
+from agent.config import TRUE_REWARD_METHODS, SACConfig
 from encoders import encoder_names, encoder_options
 from encoders.options import (
     Hyperparameter,
@@ -152,13 +152,51 @@ class Method(BaseModel):
 
     A method named after its encoder is the usual case (``conv: {latent_dim: 128}``); a
     named variant gives its encoder (``conv_pytorch_init: {encoder: conv, init: pytorch}``),
-    so one study can hold several variants of one encoder.
+    so one study can hold several variants of one encoder. ``sac`` fixes SAC fields for
+    this method only (``pixel_b128: {encoder: pixel, sac: {batch_size: 128}}``): the value
+    replaces that field of every configuration the study samples; the other fields keep
+    their samples, so the method stays paired with the others.
     """
 
     model_config = ConfigDict(frozen=True)
 
     encoder: str
     space: dict[str, tuple[Any, ...]]
+    sac: dict[str, Any] = {}
+
+
+def parse_sac_overrides(name: str, given: Any) -> dict[str, Any]:
+    """The SAC fields method ``name`` fixes (``methods.<name>.sac``): a mapping of SAC
+    field names to one value each, validated as the study's ``sac`` fields are."""
+    if not isinstance(given, dict) or not given:
+        raise spec_error(
+            f"must be a mapping of SAC fields to one value each, e.g. {{batch_size: 128}}, "
+            f"got {given!r}",
+            at=f"{name}.sac",
+        )
+    model = search_space(SACConfig)
+    fixed = {}
+    for key, value in given.items():
+        key = str(key)
+        if key not in model.model_fields:
+            allowed = list(model.model_fields)
+            raise spec_error(
+                f"unknown SAC field; {suggest(key, allowed)}allowed: {', '.join(allowed)}",
+                at=f"{name}.sac.{key}",
+            )
+        try:
+            (choice, *more) = getattr(model.model_validate({key: value}), key)
+        except ValidationError as exc:
+            _, message = format_errors(exc, model)[0]
+            raise spec_error(message, at=f"{name}.sac.{key}") from None
+        if more:
+            raise spec_error(
+                f"a method fixes one value (the study's sac.{key} is what is sampled), "
+                f"got {value!r}",
+                at=f"{name}.sac.{key}",
+            )
+        fixed[key] = choice
+    return fixed
 
 
 def parse_method(name: str, options: Any) -> Method:
@@ -173,6 +211,7 @@ def parse_method(name: str, options: Any) -> Method:
     options = dict(options)
     allowed = method_names()
     encoder = options.pop("encoder", name)
+    sac = parse_sac_overrides(name, options.pop("sac")) if "sac" in options else {}
     if encoder != name:
         if not isinstance(encoder, str) or encoder not in encoder_names():
             raise spec_error(
@@ -205,4 +244,4 @@ def parse_method(name: str, options: Any) -> Method:
     except ValidationError as exc:
         path, message = format_errors(exc, model)[0]
         raise spec_error(message, at=f"{name}.{path}") from None
-    return Method(encoder=encoder, space=space)
+    return Method(encoder=encoder, space=space, sac=sac)

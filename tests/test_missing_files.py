@@ -150,7 +150,7 @@ def test_skip_missing_runs_the_other_methods_and_a_launch_with_the_files_runs_th
         "this launch runs 2 of 3 methods (linear, pixel), 2 trials each as planned: 4 of the "
         "plan's 6 trials; the 2 of vgg stay left" in err
     )
-    assert "0 of 6 trials done, 4 to run; vgg skipped (2 trials" in err
+    assert "0 of 6 trials done, 4 to run; vgg not run now (2 trials" in err
     study = optuna.load_study(study_name="files", storage=open_storage(load_spec(spec).storage_url))
     assert study.user_attrs["plan_hash"] == plan.hash  # the whole plan's: the study resumes
     assert status_rows(capsys, spec) == {
@@ -164,7 +164,7 @@ def test_skip_missing_runs_the_other_methods_and_a_launch_with_the_files_runs_th
     with monkeypatch.context() as patch:  # nothing this launch can run: no Ray
         patch.setattr(launcher, "start_ray", no_ray)
         assert cli.main(["launch", str(spec), "--skip-missing"]) == 0
-    assert "4 of 6 trials done, 0 to run; vgg skipped (2 trials" in capsys.readouterr().err
+    assert "4 of 6 trials done, 0 to run; vgg not run now (2 trials" in capsys.readouterr().err
 
     weights.write_bytes(b"the fake trains read nothing")  # the files are here now
     assert cli.main(["launch", str(spec)]) == 0
@@ -235,3 +235,37 @@ def test_a_checkpoint_is_written_when_its_emptied_parent_is_removed_meanwhile(
     location = str(tmp_path / "pixel" / "0" / "1" / "checkpoint.pt")
     storage_io.write_atomic(location, lambda f: f.write(b"data"))
     assert Path(location).read_bytes() == b"data" and len(calls) == 2
+
+
+def test_only_runs_the_named_methods_and_a_later_launch_the_rest(
+    tmp_path, monkeypatch, capsys, local_ray
+):
+    """``--only`` runs one arm of a study at a time: the plan and its hash whole, the other
+    methods' trials left for a later launch; an unknown name is one line, exit 2."""
+    monkeypatch.chdir(tmp_path)
+    real_launch = launcher.launch
+    monkeypatch.setattr(
+        launcher, "launch", lambda spec, plan, **kw: real_launch(spec, plan, train=instant, **kw)
+    )
+    spec = write_ci_spec(
+        tmp_path / "spec.yaml", study="arms",
+        methods={"pixel": {}, "pixel_tau": {"encoder": "pixel", "sac": {"critic_tau": 0.01}}},
+        storage=f"sqlite:///{tmp_path / 'study.db'}", checkpoints=str(tmp_path / "checkpoints"),
+    )  # fmt: skip
+    with monkeypatch.context() as patch:
+        patch.setattr(launcher, "start_ray", no_ray)
+        assert cli.main(["launch", str(spec), "--only", "pixel_tua"]) == 2
+    err = capsys.readouterr().err
+    assert err == (
+        "sweeper launch: --only: no method 'pixel_tua' in the spec; did you mean "
+        "'pixel_tau'? methods: pixel, pixel_tau\n"
+    )
+    assert cli.main(["launch", str(spec), "--only", "pixel_tau"]) == 0
+    assert "0 of 2 trials done, 1 to run; pixel not run now (1 trials" in capsys.readouterr().err
+    assert status_rows(capsys, spec)["pixel"] == ["1", "0", "0", "0", "0", "1"]
+    assert status_rows(capsys, spec)["pixel_tau"] == ["1", "1", "0", "0", "0", "0"]
+    assert cli.main(["launch", str(spec)]) == 0
+    assert "1 of 2 trials done, 1 to run" in capsys.readouterr().err
+    study = optuna.load_study(study_name="arms", storage=open_storage(load_spec(spec).storage_url))
+    assert study.user_attrs["plan_hash"] == build_plan(load_spec(spec)).hash
+    assert sorted(t.user_attrs["key"] for t in study.get_trials()) == ["pixel/0/0", "pixel_tau/0/0"]

@@ -203,3 +203,46 @@ def test_pinned_hashes_of_the_shipped_specs():
     assert conv != "d7c89eff6bb13755cadd5c47a4ad6db3385e403860177b1502d16143b8bba39b"  # before
     cpu = build_plan(load_spec(ROOT / "studies" / "fetch_reach_cpu.yaml"))
     assert cpu.hash == "1eb028c93daac2f4c3f53562124d592c64add2a8359c79fd4d255b827451a5c7"
+    budget = build_plan(load_spec(ROOT / "studies" / "fetch_reach_budget.yaml"))
+    assert budget.hash == "6473b5dd99e4566b1d71fd9022a60ec029626e4f74983baf5b20156931aba9a1"
+
+
+def test_a_method_fixes_sac_fields_and_stays_paired_with_every_study_of_its_space():
+    """``methods.<name>.sac`` replaces those fields for that method only; every other
+    sampled value of configuration i is configuration i's of a study without the method
+    (the budget ladder pairs with fetch_reach_cpu by construction)."""
+    from conftest import ROOT
+
+    from sweeper.spec import load_spec
+
+    cpu = build_plan(load_spec(ROOT / "studies" / "fetch_reach_cpu.yaml"))
+    budget = build_plan(load_spec(ROOT / "studies" / "fetch_reach_budget.yaml"))
+    before = {(e.method, e.config_id, e.seed): e for e in cpu.entries}
+    fixed = {
+        "pixel_tau01": {"critic_tau": 0.01},
+        "pixel_b128": {"batch_size": 128},
+        "pixel_b128x2": {"batch_size": 128, "updates_per_step": 2},
+        "conv_b128": {"batch_size": 128},
+    }
+    assert len(budget.entries) == 24
+    for entry in budget.entries:
+        encoder = entry.trial_config.method
+        old = before[(encoder, entry.config_id, entry.seed)]
+        expected = dict(old.trial_config.sac.__dict__) | fixed.get(entry.method, {})
+        if entry.method in fixed:
+            assert entry.trial_config.sac.__dict__ == expected
+            for name, value in fixed[entry.method].items():
+                assert entry.params[name] == value
+        assert entry.trial_config.encoder_params == old.trial_config.encoder_params
+        assert entry.trial_config.seed == old.trial_config.seed
+    # the other methods of a study are untouched by a method's fixed values
+    spec = parse_spec(BASE | {"methods": {"pixel": {}, "p2": {"encoder": "pixel",
+                                                              "sac": {"lr": 3e-4}}}})
+    plain = build_plan(parse_spec(BASE | {"methods": {"pixel": {}}}))
+    both = build_plan(spec)
+    assert [e.params for e in both.entries if e.method == "pixel"] == [
+        e.params for e in plain.entries
+    ]
+    assert {e.params["lr"] for e in both.entries if e.method == "p2"} == {3e-4}
+    # one distribution per param in the study: the fixed value joins the choices
+    assert all(e.choices["lr"] == (*default_space(SACConfig)["lr"], 3e-4) for e in both.entries)

@@ -153,7 +153,8 @@ def test_spec_and_sac_config_accept_the_same_values(name):
 
 
 def test_round_trip_through_json_dump(vgg_weights):
-    for name in ("fetch_reach", "fetch_reach_cpu"):  # the second has a named variant
+    # fetch_reach_cpu has a named variant, fetch_reach_budget methods fixing SAC fields
+    for name in ("fetch_reach", "fetch_reach_cpu", "fetch_reach_budget"):
         spec = load_spec(ROOT / "studies" / f"{name}.yaml")
         assert parse_spec(spec.model_dump(mode="json")) == spec
 
@@ -201,6 +202,44 @@ def test_a_named_variant_is_its_encoder_with_fixed_options():
 def test_bad_variants_are_named(methods, error):
     with pytest.raises(SpecError, match=error):
         parse_spec(copy.deepcopy(BASE) | {"methods": methods})
+
+
+def test_a_method_fixes_sac_fields():
+    data = copy.deepcopy(BASE)
+    data["methods"] = {
+        "pixel": {},
+        "pixel_b128": {"encoder": "pixel", "sac": {"batch_size": 128, "hidden_sizes": [64, 64]}},
+    }
+    spec = parse_spec(data)
+    assert spec.methods["pixel"].sac == {}
+    assert spec.methods["pixel_b128"].sac == {"batch_size": 128, "hidden_sizes": (64, 64)}
+    dumped = spec.model_dump(mode="json")["methods"]["pixel_b128"]
+    assert dumped["sac"] == {"batch_size": 128, "hidden_sizes": [64, 64]}
+    assert parse_spec(spec.model_dump(mode="json")) == spec
+
+
+@pytest.mark.parametrize(
+    ("sac", "error"),
+    [
+        ({"batch_sise": 128}, r"^spec: methods\.p\.sac\.batch_sise: unknown SAC field; "
+         r"did you mean 'batch_size'\?"),
+        ({"batch_size": 0}, r"^spec: methods\.p\.sac\.batch_size: .*greater than or equal to 1"),
+        ({"batch_size": 2.0}, r"^spec: methods\.p\.sac\.batch_size: .*valid integer"),
+        ({"critic_tau": "0.01"}, r"^spec: methods\.p\.sac\.critic_tau: .*valid number"),
+        ({"critic_tau": [0.01, 0.02]}, r"methods\.p\.sac\.critic_tau: a method fixes one value"),
+        ({"batch_size": 5000}, r"methods\.p\.sac\.batch_size: batch_size 5000 > "
+         r"buffer_capacity 1000"),
+        ([], r"methods\.p\.sac: must be a mapping of SAC fields"),
+        ({}, r"methods\.p\.sac: must be a mapping of SAC fields"),
+    ],
+)  # fmt: skip
+def test_bad_method_sac_fields_are_named(sac, error):
+    data = copy.deepcopy(BASE)
+    data["sac"] = {"buffer_capacity": 1000}
+    data["methods"] = {"p": {"encoder": "pixel", "sac": sac}}
+    with pytest.raises(SpecError, match=error) as caught:
+        parse_spec(data)
+    assert "\n" not in str(caught.value)
 
 
 def test_overrides_are_validated():
