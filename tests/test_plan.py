@@ -236,8 +236,9 @@ def test_a_method_fixes_sac_fields_and_stays_paired_with_every_study_of_its_spac
         assert entry.trial_config.encoder_params == old.trial_config.encoder_params
         assert entry.trial_config.seed == old.trial_config.seed
     # the other methods of a study are untouched by a method's fixed values
-    spec = parse_spec(BASE | {"methods": {"pixel": {}, "p2": {"encoder": "pixel",
-                                                              "sac": {"lr": 3e-4}}}})
+    spec = parse_spec(
+        BASE | {"methods": {"pixel": {}, "p2": {"encoder": "pixel", "sac": {"lr": 3e-4}}}}
+    )
     plain = build_plan(parse_spec(BASE | {"methods": {"pixel": {}}}))
     both = build_plan(spec)
     assert [e.params for e in both.entries if e.method == "pixel"] == [
