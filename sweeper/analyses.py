@@ -148,6 +148,28 @@ def _variance(settings: Settings, target: Target) -> pd.DataFrame | None:
     return table[table["dim"] < 0].drop(columns="dim").assign(analysis="variance")
 
 
+def _descent(settings: Settings, target: Target) -> pd.DataFrame:
+    summary, episodes = dx.greedy_descent(
+        target.env,
+        target.encoders,
+        settings.descent_episodes,
+        settings.descent_horizon,
+        settings.descent_candidates,
+        settings.descent_step,
+        seed=settings.seed,
+        progress=not settings.quiet,
+    )
+    summary = target.write(summary, "descent")
+    episodes = target.write(episodes, "descent_episodes")
+    plots.plot_descent(
+        episodes,
+        target.out / "descent.png",
+        f"{target.name}: greedy descent on each reward ({settings.descent_candidates} "
+        f"candidates a step, {settings.descent_horizon} steps)",
+    )
+    return summary.assign(analysis="descent")
+
+
 #: analysis name -> the function that runs it, writes its CSV and PNG and returns its summary
 #: (in the order they run)
 RUNNERS: dict[str, Callable[[Settings, Target], pd.DataFrame | None]] = {
@@ -157,4 +179,5 @@ RUNNERS: dict[str, Callable[[Settings, Target], pd.DataFrame | None]] = {
     "precision": _precision,
     "topology": _topology,
     "variance": _variance,
+    "descent": _descent,
 }

@@ -36,7 +36,15 @@ from sweeper.diagnose_settings import (
 )
 from sweeper.frames import env_views
 
-ANALYSES = ("exploration", "gradient", "correlation", "precision", "topology", "variance")
+ANALYSES = (
+    "exploration",
+    "gradient",
+    "correlation",
+    "precision",
+    "topology",
+    "variance",
+    "descent",
+)
 #: summary.csv; ``start`` is set on the rows of the analyses that draw (state, goal) pairs
 SUMMARY_COLUMNS = ["env", "analysis", "encoder", "metric", "value", "start"]
 #: the defaults of the options that set ``Settings``
@@ -139,6 +147,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--success-radius", type=float, default=DEFAULTS.success_radius,
         help="near-goal precision: a state this close to the goal succeeds (Fetch: 0.05 m)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--descent-episodes", type=int, default=DEFAULTS.descent_episodes,
+        help="greedy descent: episodes, each from the env's reset",
+    )  # fmt: skip
+    parser.add_argument(
+        "--descent-horizon", type=int, default=DEFAULTS.descent_horizon,
+        help="greedy descent: steps per episode",
+    )  # fmt: skip
+    parser.add_argument(
+        "--descent-candidates", type=int, default=DEFAULTS.descent_candidates,
+        help="greedy descent: actions tried in a copy of the simulator at each step",
+    )  # fmt: skip
+    parser.add_argument(
+        "--descent-step", type=float, default=DEFAULTS.descent_step,
+        help="greedy descent: the actions' size, a fraction of the action box's half-width",
     )  # fmt: skip
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 

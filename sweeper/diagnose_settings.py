@@ -40,11 +40,16 @@ class Settings:
     precision_states: int = 200  # states around each goal
     precision_radius: float = 0.15  # the ball they are drawn in
     success_radius: float = 0.05  # Fetch's success threshold (m)
+    descent_episodes: int = 30  # greedy descent: episodes from the env's reset
+    descent_horizon: int = 50  # steps each
+    descent_candidates: int = 8  # actions tried a step
+    descent_step: float = 0.5  # their size, a fraction of the action box's half-width
     quiet: bool = False  # no progress lines
 
     def __post_init__(self) -> None:
         counts = ("episodes", "gradient_states", "directions", "pairs", "variance_states",
-                  "precision_goals", "precision_states")  # fmt: skip
+                  "precision_goals", "precision_states", "descent_episodes",
+                  "descent_horizon")  # fmt: skip
         for name in counts:
             if getattr(self, name) < 1:
                 raise UsageError(f"--{name.replace('_', '-')} must be positive")
@@ -60,6 +65,10 @@ class Settings:
             raise UsageError("need 0 < --success-radius < --precision-radius")
         if not 0 <= self.min_goal_distance < math.inf:
             raise UsageError("--min-goal-distance must be finite and at least 0")
+        if self.descent_candidates < 2:
+            raise UsageError("--descent-candidates must be at least 2")
+        if not 0 < self.descent_step <= 1:
+            raise UsageError("--descent-step must be in (0, 1]")
         if self.start not in START_MODES:
             raise UsageError(f"--start must be one of {', '.join(START_MODES)}")
 

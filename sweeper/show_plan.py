@@ -4,7 +4,8 @@ Per method: its trials, their env steps, how many are done, and one trial's esti
 time (``sweeper.estimate``: from the study's finished trials of that method when the study
 exists, else calibrated on this machine in a few seconds). Then the study's total trial time
 and its wall time at the spec's concurrency on this machine. Reads the study read-only and
-needs no training-only file (VGG is timed with random weights).
+needs no training-only file: a method whose file is missing here (VGG's weights) is listed
+with its cost unknown.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from fractions import Fraction
 from typing import TYPE_CHECKING, TextIO
 
@@ -53,9 +55,13 @@ def study_finished(spec: StudySpec, plan: Plan) -> tuple[set[str], dict[str, flo
 def plan_lines(
     spec: StudySpec, plan: Plan, done: set[str], measured: dict[str, float]
 ) -> list[str]:
-    """The plan table and the estimate (calibrating the methods without finished trials)."""
+    """The plan table and the estimate (calibrating the methods without finished trials).
+    A method whose file is missing here (``StudySpec.missing_files``: vgg without its
+    weights) is listed with its cost unknown and left out of the totals."""
+    needs = {item.method: item for item in spec.missing_files()}
+    known = [e for e in plan.entries if e.method not in needs or e.method in measured]
     start = time.perf_counter()
-    estimates = estimate_trials(plan.entries, measured)
+    estimates = estimate_trials(known, measured)
     calibration_seconds = time.perf_counter() - start
     steps = spec.budget.env_steps
     lines = [
@@ -71,18 +77,30 @@ def plan_lines(
     for method in spec.methods:
         entries = [e for e in plan.entries if e.method == method]
         finished = sum(e.key in done for e in entries)
-        mean = sum(estimates[e.key].seconds for e in entries) / len(entries)
-        source = estimates[entries[0].key].source
-        if source == "measured":
-            source = f"measured ({finished} finished)"
+        if entries[0].key in estimates:
+            mean = sum(estimates[e.key].seconds for e in entries) / len(entries)
+            cost, source = format_duration(mean), estimates[entries[0].key].source
+            if source == "measured":
+                source = f"measured ({finished} finished)"
+        else:
+            cost, source = "unknown", f"needs its file: {needs[method].at}: {needs[method].message}"
         lines.append(
             f"{method:<{width}}  {len(entries):>6}  {len(entries) * steps:>11,}  "
-            f"{finished:>4}  {format_duration(mean):>13}  {source}"
+            f"{finished:>4}  {cost:>13}  {source}"
         )
     lines += budget_lines(spec, plan)
     if plan.schedule is not None:
-        lines += halving_lines(plan, estimates, len(spec.seeds))
-    return lines + summary_lines(plan.entries, done, estimates, spec.execution, calibration_seconds)
+        lines += halving_lines(replace(plan, entries=tuple(known)), estimates, len(spec.seeds))
+    lines += summary_lines(known, done, estimates, spec.execution, calibration_seconds)
+    unknown = sorted({e.method for e in plan.entries} - {e.method for e in known})
+    if unknown:
+        count = sum(e.method in unknown for e in plan.entries)
+        lines.append(
+            f"not counted above: {', '.join(unknown)} ({count} trials), whose cost is unknown "
+            "until the file it needs is given (sweeper launch refuses the study without it, "
+            "or runs the other methods with --skip-missing)"
+        )
+    return lines
 
 
 def budget_lines(spec: StudySpec, plan: Plan) -> list[str]:
@@ -102,7 +120,9 @@ def budget_lines(spec: StudySpec, plan: Plan) -> list[str]:
             f"{c.batch_size} x {c.updates_per_step} = {c.batch_size * c.updates_per_step}"
             for c in {(c.batch_size, c.updates_per_step): c for c in configs}.values()
         )
-        fraction = " | ".join(str(Fraction(n, A1_SAMPLES)) for n in samples)
+        fraction = " | ".join(
+            "all" if n == A1_SAMPLES else str(Fraction(n, A1_SAMPLES)) for n in samples
+        )
         own = outside_a1(spec.methods[method].sac)
         mark = f"; outside A.1: {', '.join(own)}" if own else ""
         lines.append(f"  {method:<{width}}  {shown}  ({fraction} of A.1){mark}")

@@ -69,6 +69,19 @@ class StripeEnv:
         self.state = np.clip(np.asarray(state, np.float64), 0, 1)
         return self.state.copy()
 
+    def sim_state(self) -> np.ndarray:
+        return np.concatenate([self.state, self.arm])
+
+    def set_sim_state(self, state) -> None:
+        self.state, self.arm = np.array(state[:3]), np.array(state[3:])
+
+    def goal_image(self) -> np.ndarray:
+        saved = self.sim_state()
+        self.state = self.goal.copy()
+        image = self.render_image()
+        self.set_sim_state(saved)
+        return image
+
     def render_image(self) -> np.ndarray:
         dither = (np.arange(64) + 0.5) / 64
         image = np.zeros((32, 64, 3), np.uint8)
@@ -284,6 +297,59 @@ def test_goal_precision_peaks_where_the_true_reward_does_when_the_image_shows_th
         dx.goal_precision(StripeEnv(), pixel(), radius=0.1, success_radius=0.2, progress=False)
 
 
+def test_greedy_descent_follows_a_reward_that_shows_the_state() -> None:
+    """On StripeEnv the pixel distance is the true distance times a constant, so greedy
+    descent on it picks the true reward's candidates: the same final distances, every
+    episode; a random pick does worse. The candidates are the controllers' common ones."""
+    summary, episodes = dx.greedy_descent(
+        StripeEnv(), pixel(), episodes=6, horizon=25, candidates=8, step_size=1.0,
+        progress=False,
+    )  # fmt: skip
+    by = {name: g.set_index("episode") for name, g in episodes.groupby("encoder")}
+    assert set(by) == {"pixel", "true_reward", "random"}
+    np.testing.assert_allclose(by["pixel"]["final_distance"], by["true_reward"]["final_distance"],
+                               atol=0.01)  # fmt: skip
+    assert by["true_reward"]["success"].mean() == 1.0
+    assert by["random"]["final_distance"].median() > 3 * by["pixel"]["final_distance"].median()
+    rows = summary.set_index(["encoder", "metric"])["value"]
+    assert rows[("pixel", "success_rate")] == by["pixel"]["success"].mean()
+    assert rows[("random", "median_final_distance")] == by["random"]["final_distance"].median()
+    again, _ = dx.greedy_descent(
+        StripeEnv(), pixel(), episodes=6, horizon=25, candidates=8, step_size=1.0,
+        progress=False,
+    )  # fmt: skip
+    pd.testing.assert_frame_equal(summary, again)
+    with pytest.raises(ValueError, match="two candidates"):
+        dx.greedy_descent(StripeEnv(), pixel(), candidates=1, progress=False)
+
+
+def test_candidate_actions_are_small_moves_in_the_action_box() -> None:
+    rng = np.random.default_rng(0)
+    low, high = np.array([-1.0, -1.0, 0.0]), np.array([1.0, 1.0, 2.0])
+    actions = dx.candidate_actions(rng, low, high, 50, 0.5)
+    centre = (low + high) / 2
+    assert actions.shape == (50, 3) and actions.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(actions - centre, axis=1), 0.5, rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["point_reach", "fetch_reach", "sawyer_door"])
+def test_an_env_goes_on_from_a_restored_simulator_state_exactly(name) -> None:
+    env = make_env(name, image_size=32 if name != "sawyer_door" else 48, obs_mode="state")
+    try:
+        env.reset(seed=3)
+        action = np.full(env.action_space.shape, 0.5, np.float32)
+        saved = env.sim_state()
+        env.step(action)
+        first = (env.controllable_state(), env.render_image())
+        env.step(-action)  # somewhere else, then back
+        env.set_sim_state(saved)
+        env.step(action)
+        np.testing.assert_array_equal(env.controllable_state(), first[0])
+        np.testing.assert_array_equal(env.render_image(), first[1])
+    finally:
+        env.close()
+
+
 def test_grid_topology() -> None:
     summary, emb = dx.grid_topology(
         StripeEnv(), pixel(), grid_size=7, n_neighbors=5, progress=False
@@ -321,7 +387,8 @@ def test_random_frames() -> None:
 # ---- the CLI ----------------------------------------------------------------------------
 SMALL = ["--episodes", "3", "--gradient-states", "3", "--directions", "4", "--pairs", "5",
          "--grid-size", "5", "--variance-states", "3", "--precision-goals", "2",
-         "--precision-states", "5", "--quiet"]  # fmt: skip
+         "--precision-states", "5", "--descent-episodes", "2", "--descent-horizon", "3",
+         "--quiet"]  # fmt: skip
 
 
 def test_cli_writes_its_files(tmp_path, capsys) -> None:
@@ -330,12 +397,13 @@ def test_cli_writes_its_files(tmp_path, capsys) -> None:
                  "--image-size", "32", "--out", str(tmp_path / "{env}"), *SMALL])  # fmt: skip
     assert code == 0
     out = tmp_path / "point_reach"
-    for stem in ("exploration", "gradient", "correlation", "precision", "topology"):
+    for stem in ("exploration", "gradient", "correlation", "precision", "topology", "descent"):
         assert (out / f"{stem}.png").stat().st_size > 1000
         table = pd.read_csv(out / f"{stem}.csv")
         assert list(table.columns[:4]) == ["env", "encoder", "metric", "value"]
     summary = pd.read_csv(out / "summary.csv")
-    assert set(summary["encoder"]) == {"none", "pixel", "cvae", "true_reward"}  # precision
+    # true_reward: precision's and descent's; random: descent's
+    assert set(summary["encoder"]) == {"none", "pixel", "cvae", "true_reward", "random"}
     assert "mean_cosine_distance" in set(summary["metric"])
     assert "point_reach: wrote" in capsys.readouterr().out
     # Algorithm 1's defaults, recorded: pairs from the env's reset, no near-goal filter

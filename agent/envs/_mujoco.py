@@ -274,6 +274,12 @@ class MujocoGoalImageEnv(GoalImageEnv):
     def goal_state(self) -> np.ndarray:
         return self._goal.copy()
 
+    def sim_state(self) -> np.ndarray:
+        return snapshot(self.model, self.data)
+
+    def set_sim_state(self, state: np.ndarray) -> None:
+        restore(self.model, self.data, state)
+
     def set_goal_state(self, goal: np.ndarray) -> None:
         self._goal = check_vector(goal, len(self.state_names), "goal")
         if self.obs_mode == "image":

@@ -155,6 +155,15 @@ class GoalImageEnv(gym.Env[dict[str, np.ndarray], np.ndarray], ABC):
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Box (low, high) from which goals and diagnostic states are sampled."""
 
+    @abstractmethod
+    def sim_state(self) -> Any:
+        """An exact copy of the simulator's state (not the episode's bookkeeping)."""
+
+    @abstractmethod
+    def set_sim_state(self, state: Any) -> None:
+        """Put the simulator back into ``state`` (from ``sim_state``) exactly: the next
+        ``step`` continues as it would have from there."""
+
     # ---- Gymnasium API --------------------------------------------------------------
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None

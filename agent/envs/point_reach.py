@@ -106,3 +106,9 @@ class PointReachEnv(GoalImageEnv):
 
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return np.full(2, -0.9 * ARENA), np.full(2, 0.9 * ARENA)
+
+    def sim_state(self) -> np.ndarray:
+        return self._pos.copy()
+
+    def set_sim_state(self, state: np.ndarray) -> None:
+        self._pos = np.array(state, dtype=np.float64)

@@ -13,6 +13,7 @@ freshly reset env, so none depends on which ran before it.
 
 from encoders.diagnostics.common import START_MODES
 from encoders.diagnostics.correlation import reward_correlation
+from encoders.diagnostics.descent import candidate_actions, greedy_descent
 from encoders.diagnostics.exploration import random_exploration, random_frames
 from encoders.diagnostics.gradient import (
     cosine_distance,
@@ -29,11 +30,13 @@ from encoders.diagnostics.variance import arm_object_variance, has_arm
 __all__ = [
     "START_MODES",
     "arm_object_variance",
+    "candidate_actions",
     "cosine_distance",
     "default_grid_dims",
     "goal_precision",
     "gradient_agreement",
     "gradient_summary",
+    "greedy_descent",
     "grid_topology",
     "has_arm",
     "least_squares_gradient",

@@ -136,3 +136,26 @@ def plot_variance(table: pd.DataFrame, path: Path, title: str) -> Path:
         ax.set_ylabel("variance, only the arm moves")
         ax.legend(loc="upper left")
     return _save(fig, path, title)
+
+
+def plot_descent(episodes: pd.DataFrame, path: Path, title: str) -> Path:
+    """Greedy descent: success rate per controller (left) and each episode's final
+    distance to the goal (right, the median marked)."""
+    plt = _pyplot()
+    names = list(dict.fromkeys(episodes["encoder"]))
+    fig, (left, right) = plt.subplots(1, 2, figsize=(max(8.0, 1.6 * len(names) + 4), 3.8))
+    rates = [episodes.loc[episodes["encoder"] == n, "success"].mean() for n in names]
+    colors = ["0.6" if n in ("random", "true_reward") else "C0" for n in names]
+    left.bar(names, rates, color=colors)
+    left.set_ylim(0, 1)
+    left.set_ylabel("success rate")
+    for i, name in enumerate(names):
+        values = episodes.loc[episodes["encoder"] == name, "final_distance"].to_numpy()
+        jitter = np.linspace(-0.15, 0.15, len(values)) if len(values) > 1 else np.zeros(1)
+        right.scatter(i + jitter, values, s=10, alpha=0.6, color=colors[i])
+        right.hlines(np.median(values), i - 0.3, i + 0.3, color="k")
+    right.set_xticks(range(len(names)), names)
+    right.set_ylabel("final distance to the goal")
+    for ax in (left, right):
+        ax.tick_params(axis="x", rotation=30)
+    return _save(fig, path, title)
