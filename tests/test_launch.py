@@ -203,7 +203,10 @@ def test_launch_on_postgresql(tmp_path):
     try:
         url = f"postgresql://postgres@127.0.0.1:5432/test?options=-csearch_path%3D{schema}"
         spec = write_ci_spec(
-            tmp_path / "ci.yaml", storage=url, checkpoints=str(tmp_path / "checkpoints")
+            tmp_path / "ci.yaml",
+            storage=url,
+            checkpoints=str(tmp_path / "checkpoints"),
+            artifacts=str(tmp_path / "artifacts"),  # not the checkout's runs/
         )
         assert cli.main(["launch", str(spec), "--max-concurrent", "1"]) == 0
         check_ci_study(load(url))
