@@ -105,13 +105,17 @@ def plan_lines(
 
 def budget_lines(spec: StudySpec, plan: Plan) -> list[str]:
     """Each method's gradient samples per env step (batch x updates per step) against
-    appendix A.1's, and the SAC values outside A.1: the study's constants once, then each
-    method's own fixed values (``methods.<name>.sac``)."""
+    appendix A.1's, and the SAC values outside A.1: the study's constants once, each
+    method's own fixed values (``methods.<name>.sac``) and the constants some method
+    replaces on each method's line."""
     lines = [
         f"gradient samples per env step (batch x updates per step; A.1: {A1.batch_size} x "
         f"{A1.updates_per_step} = {A1_SAMPLES}):"
     ]
-    shared = outside_a1({k: cs[0] for k, cs in spec.sac.space().items() if len(cs) == 1})
+    constants = {k: cs[0] for k, cs in spec.sac.space().items() if len(cs) == 1}
+    # a constant some method replaces is said per method, the others once for all
+    replaced = {name for m in spec.methods.values() for name in m.sac}
+    shared = outside_a1({k: v for k, v in constants.items() if k not in replaced})
     width = max(len(m) for m in spec.methods)
     for method in spec.methods:
         configs = [e.trial_config.sac for e in plan.entries if e.method == method]
@@ -123,7 +127,8 @@ def budget_lines(spec: StudySpec, plan: Plan) -> list[str]:
         fraction = " | ".join(
             "all" if n == A1_SAMPLES else str(Fraction(n, A1_SAMPLES)) for n in samples
         )
-        own = outside_a1(spec.methods[method].sac)
+        fixed = {k: v for k, v in constants.items() if k in replaced}
+        own = outside_a1(fixed | spec.methods[method].sac)
         mark = f"; outside A.1: {', '.join(own)}" if own else ""
         lines.append(f"  {method:<{width}}  {shown}  ({fraction} of A.1){mark}")
     if shared:

@@ -247,3 +247,29 @@ def test_a_method_fixes_sac_fields_and_stays_paired_with_every_study_of_its_spac
     assert {e.params["lr"] for e in both.entries if e.method == "p2"} == {3e-4}
     # one distribution per param in the study: the fixed value joins the choices
     assert all(e.choices["lr"] == (*default_space(SACConfig)["lr"], 3e-4) for e in both.entries)
+
+
+def test_sweeper_plan_says_each_method_s_gradient_samples_and_what_is_outside_a1():
+    from conftest import ROOT
+
+    from sweeper.show_plan import budget_lines
+    from sweeper.spec import load_spec
+
+    spec = load_spec(ROOT / "studies" / "fetch_reach_budget.yaml")
+    lines = budget_lines(spec, build_plan(spec))
+    assert (
+        lines[0] == "gradient samples per env step (batch x updates per step; A.1: 256 x 2 = 512):"
+    )
+    rows = {line.split()[0]: line for line in lines[1:]}
+    assert "32 x 1 = 32  (1/16 of A.1)" in rows["pixel_tau01"]
+    assert "critic_tau 0.01 (A.1: 0.005 | 0.001)" in rows["conv_tau01"]
+    assert "128 x 1 = 128  (1/4 of A.1)" in rows["conv_b128"]
+    assert "128 x 2 = 256  (1/2 of A.1)" in rows["pixel_b128x2"]
+    assert "critic_tau" not in rows["pixel_b128x2"]  # A.1's own choices are not marked
+    assert "updates_per_step" not in rows["pixel_b128x2"]  # the variant's 2 is A.1's
+    assert rows["every"] == (
+        "  every method, outside A.1: buffer_capacity 100000 (A.1: 1000000), num_filters 16 "
+        "(A.1: 32)"
+    )
+    cpu = load_spec(ROOT / "studies" / "fetch_reach_cpu.yaml")
+    assert all("(1/16 of A.1)" in line for line in budget_lines(cpu, build_plan(cpu))[1:-1])
