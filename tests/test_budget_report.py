@@ -145,7 +145,7 @@ def test_a_study_whose_configurations_differ_is_left_out(frames):
     )
 
 
-def test_encoder_options_that_differ_refuse_the_study(frames):
+def test_encoder_options_or_env_steps_that_differ_refuse_the_study(frames):
     cpu, budget = study_trials("cpu", frames["cpu"]), study_trials("budget", frames["budget"])
     assert not join_studies([cpu, budget]).left_out
     trials = budget.trials.copy()
@@ -156,6 +156,9 @@ def test_encoder_options_that_differ_refuse_the_study(frames):
     join = join_studies([cpu, dataclasses.replace(budget, trials=trials)])
     assert join.studies == ("cpu",)
     assert any("conv option latent_dim 64" in p for p in join.left_out["budget"])
+    longer = {**budget.conditions, "budget.env_steps": 20000}
+    join = join_studies([cpu, dataclasses.replace(budget, conditions=longer)])
+    assert join.left_out["budget"] == ["budget.env_steps 20000 (reference: 15000)"]
 
 
 def test_the_higher_setting_is_compared_with_the_lower_on_the_same_pairs(joined):

@@ -141,6 +141,7 @@ class StudyTrials:
 
     name: str
     env_steps: int | None  # the spec's budget.env_steps (else the last evaluation step)
+    conditions: dict[str, Any]  # the stored spec's env and budget, "env.image_size": 84
     fixed_sac: frozenset[str]  # SAC fields some method of the study fixes
     lines: dict[str, str]  # method -> its line (``method_lines``), in the spec's order
     planned: dict[str, set[tuple[int, int]]]  # method -> its planned (config_id, seed)
@@ -233,12 +234,18 @@ def study_trials(name: str, frame: pd.DataFrame) -> StudyTrials:
     steps = (spec.get("budget") or {}).get("env_steps")
     if steps is None and frame["step"].notna().any():
         steps = int(frame["step"].max())
+    conditions = {
+        f"{section}.{k}": v
+        for section in ("env", "budget")
+        for k, v in (spec.get(section) or {}).items()
+    }
+    conditions.setdefault("budget.env_steps", steps)
     fixed = {k for m in (spec.get("methods") or {}).values() for k in (m or {}).get("sac", {})}
     planned: dict[str, set[tuple[int, int]]] = {}
     for key in info.attrs.get("plan") or trials["key"].tolist():
         method, config_id, seed = key.split("/")
         planned.setdefault(method, set()).add((int(config_id), int(seed)))
-    return StudyTrials(name, steps, frozenset(fixed), lines, planned, table)
+    return StudyTrials(name, steps, conditions, frozenset(fixed), lines, planned, table)
 
 
 # ---- the join ------------------------------------------------------------------------
@@ -265,12 +272,10 @@ def differences(mine: Mapping[str, Any], theirs: Mapping[str, Any]) -> list[str]
 def pairing_problems(
     study: StudyTrials, reference: StudyTrials, fixed: frozenset[str]
 ) -> list[str]:
-    """Why ``study``'s configurations are not ``reference``'s: per configuration both hold,
-    the sampled SAC values (fields not in ``fixed``) and each shared line's encoder options
-    that differ; and a different number of env steps."""
-    problems = []
-    if study.env_steps != reference.env_steps:
-        problems.append(f"env steps {study.env_steps} (reference: {reference.env_steps})")
+    """Why ``study``'s configurations are not ``reference``'s: its env or budget (env
+    steps, evaluations) where they differ; per configuration both hold, the sampled SAC
+    values (fields not in ``fixed``) and each shared line's encoder options that differ."""
+    problems = differences(study.conditions, reference.conditions)
     mine = first_by_config(study.trials, "sac", fixed)
     theirs = first_by_config(reference.trials, "sac", fixed)
     for config_id in sorted(set(mine) & set(theirs)):
@@ -313,6 +318,12 @@ class BudgetJoin:
     unplaced: int = 0  # trials without batch_size / updates_per_step params, left out
 
 
+def in_a1_order(values: Mapping[str, Any]) -> dict[str, Any]:
+    """``values`` ordered as A.1's SAC fields, so a label reads the same in every study."""
+    order = list(A1_CHOICES)
+    return dict(sorted(values.items(), key=lambda item: order.index(item[0])))
+
+
 def join_studies(studies: Sequence[StudyTrials]) -> BudgetJoin:
     """Join ``studies`` (the first is the reference) by line, configuration and seed; label
     each trial's setting (columns ``setting``, ``on_line``: no departure but its budget)."""
@@ -340,12 +351,7 @@ def join_studies(studies: Sequence[StudyTrials]) -> BudgetJoin:
     trials = trials[keep].reset_index(drop=True)
     items = [set(d.items()) for d in trials["departures"]]
     shared = set.intersection(*items) if items else set()
-    order = list(A1_CHOICES)
-    own = [
-        {k: v for k, v in sorted(d.items(), key=lambda kv: order.index(kv[0]))
-         if (k, v) not in shared}
-        for d in trials["departures"]
-    ]  # fmt: skip
+    own = [in_a1_order(dict(d.items() - shared)) for d in trials["departures"]]
     trials = trials.assign(
         setting=[setting_label(n, d) for n, d in zip(trials["samples"], own, strict=True)],
         on_line=[not d for d in own],
@@ -355,7 +361,7 @@ def join_studies(studies: Sequence[StudyTrials]) -> BudgetJoin:
         lines=tuple(line for line in lines if line not in controls),
         studies=tuple(s.name for s in joined),
         left_out=left_out,
-        shared=tuple(f"{k} {v}" for k, v in sorted(shared, key=lambda kv: order.index(kv[0]))),
+        shared=tuple(f"{k} {v}" for k, v in in_a1_order(dict(shared)).items()),
         pairs=pairs,
         env_steps=reference.env_steps,
         unplaced=unplaced,
