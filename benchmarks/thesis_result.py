@@ -1,6 +1,7 @@
 """The thesis' FetchReach claims judged on a study the sweep made (the README's table).
 
     .venv/bin/python benchmarks/thesis_result.py [--storage URL] [--study NAME]
+        [--budget-storage URL] [--budget-study NAME]
 
 Default: the published study, ``docs/studies/fetch_reach_cpu/study.db``. Prints a Markdown
 table, per method: done of planned trials, IQM AUC with its 95 % interval, the IQM of the
@@ -17,6 +18,13 @@ claim:
 Every statistic comes from ``sweeper aggregate``'s own tables (the same seed), so the
 figures match the study's ``auc_table.csv`` and ``improvement.csv``. A claim resting on
 fewer than 5 trials or pairs says so.
+
+With the budget study (``studies/fetch_reach_budget.yaml``; default its published database,
+``docs/studies/fetch_reach_budget/study.db``, which may not exist yet: then one line says
+so), the two "solves" claims are judged at every gradient budget the studies ran, joined as
+``sweeper aggregate`` joins them (``sweeper.aggregate.budget``: the same configurations and
+seeds), each with its condition: "PIXEL solves FetchReach: holds at 1/4 of A.1's gradient
+samples, 15k steps, 4 trials". The rule (``solved_at``) is printed with them.
 """
 
 from __future__ import annotations
@@ -33,6 +41,98 @@ sys.path.insert(0, str(ROOT))
 SOLVED = 0.8
 #: the published study
 STORAGE = f"sqlite:///{ROOT / 'docs' / 'studies' / 'fetch_reach_cpu' / 'study.db'}"
+#: the budget study's published database (absent until it is published)
+BUDGET_STORAGE = f"sqlite:///{ROOT / 'docs' / 'studies' / 'fetch_reach_budget' / 'study.db'}"
+#: the encoders whose "solves FetchReach" the thesis claims
+SOLVERS = ("pixel", "conv")
+
+
+def solved_at(final_iqm: float, low: float, random: float | None) -> bool:
+    """The rule for "solves" at one setting: the IQM final success rate reaches ``SOLVED``
+    and the lower end of its 95 % interval lies above the random agent's success rate
+    (so the level is not what chance gives); without a measured random agent, the first
+    part alone."""
+    return final_iqm >= SOLVED and (random is None or low > random)
+
+
+def rule_text(random: float | None) -> str:
+    """``solved_at`` in words, for the output."""
+    floor = (
+        ""
+        if random is None
+        else (
+            f" and the lower end of its 95% interval lies above the random agent's success "
+            f"rate ({random:.2f})"
+        )
+    )
+    return (
+        f"Rule: a claim holds at a setting when the IQM final success rate (the last "
+        f"evaluation) is >= {SOLVED}{floor}; otherwise it does not hold there."
+    )
+
+
+def condition(setting: str, env_steps: int | None, n: int) -> str:
+    """Where a claim is judged: ``"1/4 of A.1's gradient samples, 15k steps, 4 trials"``
+    (a setting's other departures from A.1 follow its fraction)."""
+    fraction, _, departures = setting.partition(", ")
+    parts = [f"{fraction} of A.1's gradient samples", *filter(None, [departures])]
+    if env_steps:
+        parts.append(f"{env_steps / 1000:g}k steps")
+    parts.append(f"{n} trial{'s' if n != 1 else ''}")
+    return ", ".join(parts)
+
+
+def sqlite_file(url: str) -> Path | None:
+    """The file of a ``sqlite:///`` URL (None for another database)."""
+    prefix = "sqlite:///"
+    return Path(url[len(prefix) :]) if url.startswith(prefix) else None
+
+
+def budget_claims(frame, storage: str, study: str, seed: int = 0) -> list[str]:
+    """The "solves" claims at every setting of the budget join of ``frame`` (the
+    published study, read) with ``study`` at ``storage``; one line when that study
+    cannot be read."""
+    from sweeper.aggregate.budget import budget_table, join_studies, study_trials
+    from sweeper.aggregate.frame import load_study_frame, random_success, stage_frame, study_info
+    from sweeper.aggregate.report import MIN_RELIABLE, _fmt
+
+    path = sqlite_file(storage)
+    if path is not None and not path.is_file():
+        shown = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
+        return [
+            f"No budget study: {shown} does not exist (studies/fetch_reach_budget.yaml, not "
+            "published yet), so the claims above are judged at 1/16 of A.1's gradient "
+            "samples only."
+        ]
+    try:
+        budget = stage_frame(load_study_frame(storage, study), "search")
+    except ValueError as e:
+        return [f"No budget study: {e}"]
+    name = study_info(frame).name
+    join = join_studies(
+        [study_trials(name, stage_frame(frame, "search")), study_trials(study, budget)]
+    )
+    table = budget_table(join, seed=seed)
+    random = random_success(frame)
+    lines = [
+        f"Each claim at each gradient budget ({' + '.join(join.studies)}). {rule_text(random)}"
+    ]
+    for left, problems in join.left_out.items():
+        lines.append(f"{left} is left out: its configurations differ ({'; '.join(problems)}).")
+    for encoder in SOLVERS:
+        for row in table[table["encoder"] == encoder].itertuples():
+            held = solved_at(row.final_success_iqm, row.final_success_iqm_low, random)
+            evidence = (
+                f"IQM final success {_fmt(row.final_success_iqm, 2)} "
+                f"[{_fmt(row.final_success_iqm_low, 2)}, {_fmt(row.final_success_iqm_high, 2)}]"
+            )
+            if row.n < MIN_RELIABLE:
+                evidence += f"; fewer than {MIN_RELIABLE} trials, not reliable"
+            lines.append(
+                f"- {encoder.upper()} solves FetchReach: {'holds' if held else 'does not hold'} "
+                f"at {condition(row.setting, join.env_steps, row.n)} ({evidence})"
+            )
+    return lines
 
 
 def judge(intervals: Sequence[tuple[float, float]]) -> str:
@@ -48,7 +148,7 @@ def judge(intervals: Sequence[tuple[float, float]]) -> str:
     return "not settled"
 
 
-def main() -> None:
+def main(argv: Sequence[str] | None = None) -> None:
     import numpy as np
 
     from sweeper import stats
@@ -65,7 +165,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--storage", default=STORAGE)
     parser.add_argument("--study", default="fetch_reach_cpu")
-    args = parser.parse_args()
+    parser.add_argument("--budget-storage", default=BUDGET_STORAGE)
+    parser.add_argument("--budget-study", default="fetch_reach_budget")
+    args = parser.parse_args(argv)
 
     frame = load_study_frame(args.storage, args.study)
     seed = int((study_info(frame).attrs.get("spec") or {}).get("seed", 0))
@@ -134,6 +236,8 @@ def main() -> None:
     print(f"- CONV >= the learned latents: {ahead([('conv', 'vae'), ('conv', 'cvae')])}")
     learning_free = [(m, "vae") for m in ("pixel", "linear", "conv")]
     print(f"- VAE below the learning-free methods: {ahead(learning_free)}")
+    print()
+    print("\n".join(budget_claims(frame, args.budget_storage, args.budget_study, seed)))
 
 
 if __name__ == "__main__":

@@ -163,3 +163,47 @@ def _trial(state, params, distributions, attrs, curve, end) -> optuna.trial.Froz
         intermediate_values=dict(zip(reported["step"], success, strict=True)),
         user_attrs={**attrs, "curve": reported},
     )
+
+
+def write_planned_study(
+    storage_url: str,
+    spec,
+    *,
+    final_success,
+    seconds: float = 3600.0,
+    random_success: float | None = 0.18,
+    skip: frozenset[str] = frozenset(),
+) -> None:
+    """Create ``spec``'s study (a fetch_reach one: its trials report success_rate and
+    final_distance) as the driver does (``StudyStore.sync`` of its plan: the spec, the
+    plan, the constant params in ``fixed_params``, the varying ones and ``method`` as
+    trial params), then complete every trial as a worker does, so a join over studies sees
+    what a real one would. ``final_success(key)``: the trial's last success rate (its curve
+    rises linearly to it over the spec's evaluation grid); ``skip``: keys left WAITING."""
+    from sweeper.plan import build_plan
+    from sweeper.storage import StudyStore, open_storage
+
+    plan = build_plan(spec)
+    attrs = {  # as sweeper.launcher.study_attrs, less the provenance
+        "spec": spec.model_dump(mode="json"),
+        "plan_hash": plan.hash,
+        "plan": plan.keys(),
+        "env": spec.env.name,
+        "metric_names": ["success_rate", "final_distance"],
+    }
+    if random_success is not None:
+        attrs["random_agent"] = {"episodes": 100, "success_rate": random_success}
+    store = StudyStore.open_or_create(open_storage(storage_url), spec.study, attrs)
+    steps = list(range(0, spec.budget.env_steps + 1, spec.budget.eval_every))
+    for entry, trial in store.sync(plan.entries, plan.hash):
+        if entry.key in skip:
+            continue
+        success = np.round(final_success(entry.key) * np.linspace(0, 1, len(steps)), 3)
+        curve = {
+            "step": steps,
+            "success_rate": success.tolist(),
+            "final_distance": (0.02 + 0.15 * (1 - success)).tolist(),
+        }
+        store.start(trial._trial_id)
+        result = {"attempts": 1, "outcome": "completed", "seconds": seconds, "curve": curve}
+        store.complete(trial._trial_id, normalized_auc(steps, success), result)

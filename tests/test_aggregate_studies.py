@@ -141,6 +141,8 @@ def test_combined_report_holds_every_study(combined):
     assert "| vae | normalised AUC | 2 |" in report
     for link in [part.split(")")[0] for part in report.split("](")[1:]]:
         assert (out / link).read_bytes()[:4] == b"\x89PNG", link
+    # studies of different envs: no gradient budget join
+    assert "Gradient budget" not in report and not (out / "budget_table.csv").exists()
     tables = pd.read_csv(out / "study_tables.csv")
     assert sorted(set(tables["study"])) == sorted(STUDIES)
     door = tables[tables["study"] == "door"].set_index("method")

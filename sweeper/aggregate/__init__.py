@@ -79,6 +79,7 @@ from sweeper.storage import StorageError, is_database_error, reason_of
 from sweeper.study import open_study
 
 if TYPE_CHECKING:
+    from sweeper.aggregate.budget import BudgetReport
     from sweeper.spec import StudySpec
 
 __all__ = [
@@ -159,7 +160,20 @@ def run(specs: list[StudySpec], args: argparse.Namespace) -> int:
         print(f"sweeper aggregate: {e}", file=sys.stderr)
         return 2
     print(f"wrote {len(files)} files to {out}; report: {result.report}")
+    budget = getattr(result, "budget", None)
+    if budget is not None:  # several studies of one env: where the budget table is
+        print(budget_pointer(budget, out))
     return 0
+
+
+def budget_pointer(budget: BudgetReport, out: Path) -> str:
+    """One line saying where the gradient budget join is and what it holds."""
+    left = f"; left out (configurations differ): {', '.join(budget.join.left_out)}"
+    return (
+        f"gradient budget: {len(budget.table)} encoder x setting rows over "
+        f"{', '.join(budget.join.studies)} in {out / 'budget_table.csv'} and {out / 'budget.png'}"
+        f" (report.md, section 'Gradient budget'){left if budget.join.left_out else ''}"
+    )
 
 
 def combined_dir(studies: list[str]) -> Path:

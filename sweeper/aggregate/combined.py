@@ -15,6 +15,10 @@ final success, problem), ``normalized_scores.csv`` (per trial of the normalised 
 ``normalized_table.csv`` (per method and score), ``normalized_profiles.csv``,
 ``study_tables.csv`` and ``study_improvement.csv`` (every study's tables with a ``study``
 column), ``normalized.png``, ``normalized_profiles.png`` and ``report.md``.
+
+Studies that share an env are also joined by encoder, configuration and seed with the
+gradient budget as an axis (``sweeper.aggregate.budget``): ``budget_table.csv``,
+``budget_controls.csv``, ``budget.png`` and a section of ``report.md``.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from typing import Any
 
 import pandas as pd
 
+from sweeper.aggregate.budget import BudgetReport, budget_report
 from sweeper.aggregate.frame import load_study_frame, methods_of, stage_frame, study_info
 from sweeper.aggregate.normalize import (
     SCORES,
@@ -63,6 +68,7 @@ class CombinedResult:
     study_tables: pd.DataFrame  # every study's auc_table, with a ``study`` column
     files: tuple[Path, ...]
     report: Path
+    budget: BudgetReport | None = None  # the studies share an env: the budget join
 
 
 def normalized_table(scores: pd.DataFrame, methods: list[str], *, seed: int = 0) -> pd.DataFrame:
@@ -177,12 +183,19 @@ def aggregate_studies(
         draw_normalized(table, out / "normalized.png"),
         _draw_profiles(profiles, out / "normalized_profiles.png"),
     ]
+    budget = None
+    envs = {a.env for a in anchors}
+    if len(envs) == 1 and None not in envs:  # one env: the gradient budget as an axis
+        budget = budget_report(list(zip(labels, frames, strict=True)), out, seed=seed)
+        figures += budget.files
     report = out / "report.md"
-    text = combined_markdown(anchor_rows, table, tables, improvements)
+    text = combined_markdown(
+        anchor_rows, table, tables, improvements, budget.markdown if budget else None
+    )
     report.write_text(text, encoding="utf-8")
     say(f"aggregated {len(studies)} studies in {time.perf_counter() - start:.1f} s")
     files = (*(out / f for f in written), *figures, report)
-    return CombinedResult(anchor_rows, scores, table, profiles, study_tables, files, report)
+    return CombinedResult(anchor_rows, scores, table, profiles, study_tables, files, report, budget)
 
 
 def _labels(names: list[str]) -> list[str]:
@@ -249,9 +262,11 @@ def combined_markdown(
     table: pd.DataFrame,
     study_tables: list[pd.DataFrame],
     improvements: list[pd.DataFrame],
+    budget: str | None = None,
 ) -> str:
-    """The combined report: anchors, pooled normalised statistics, figures, every study's
-    own tables."""
+    """The combined report: anchors, pooled normalised statistics, figures, the gradient
+    budget section (``budget``, when the studies share an env), every study's own
+    tables."""
     names = ", ".join(f"`{s}` ({e})" for s, e in zip(anchors["study"], anchors["env"], strict=True))
     lines = [
         f"# {len(anchors)} studies: normalised comparison",
@@ -309,6 +324,10 @@ def combined_markdown(
         "",
         "![normalised performance profiles](normalized_profiles.png)",
         "",
+    ]
+    if budget is not None:
+        lines.append(budget)
+    lines += [
         "## Each study's own tables (AUC, not normalised)",
         "",
     ]

@@ -145,19 +145,30 @@ def improvement_table(frame: pd.DataFrame, *, seed: int = 0) -> pd.DataFrame:
         return pd.DataFrame(columns=columns)
     wide = done.pivot_table(index=["config_id", "seed"], columns="method", values="auc")
     methods = [m for m in methods_of(frame) if m in wide]
+    comparisons = [(x, y) for x in methods for y in methods if x != y]
+    return paired_improvement(wide, comparisons, seed=seed)
+
+
+def paired_improvement(
+    wide: pd.DataFrame, comparisons: list[tuple[str, str]], *, seed: int = 0
+) -> pd.DataFrame:
+    """P(``x`` > ``y``) with its interval for each ``(x, y)`` of ``comparisons``, columns of
+    ``wide`` (one row per pair of trials, e.g. (config_id, seed); NaN where an arm has no
+    trial): the pairs where both have a score, the statistic and its resampling as
+    ``improvement_table`` describes; columns method (x), versus (y), probability, low,
+    high, pairs. Shared so every paired comparison of the reports is computed one way."""
     groups, sizes = {}, {}
-    for x in methods:
-        for y in methods:
-            if x != y:
-                pairs = wide[[x, y]].dropna()
-                sizes[x, y] = len(pairs)
-                if len(pairs):
-                    groups[f"{x}>{y}"] = Group((pairs[x].to_numpy(), pairs[y].to_numpy()))
+    for x, y in comparisons:
+        pairs = wide[[x, y]].dropna()
+        sizes[x, y] = len(pairs)
+        if len(pairs):
+            groups[f"{x}>{y}"] = Group((pairs[x].to_numpy(), pairs[y].to_numpy()))
     intervals = stratified_bootstrap(
         probability_of_improvement, groups, reps=RESAMPLES, seed=seed, confidence=CONFIDENCE
     )
     nan = (math.nan, math.nan, math.nan)
     rows = [[x, y, *map(float, intervals.get(f"{x}>{y}", nan)), n] for (x, y), n in sizes.items()]
+    columns = ["method", "versus", "probability", "low", "high", "pairs"]
     return pd.DataFrame(rows, columns=columns)
 
 
@@ -166,9 +177,7 @@ def compute_columns(frame: pd.DataFrame) -> dict[str, dict[str, float]]:
     (sum of the trials' ``seconds``: wall time of every run of the trial, resumes and the
     encoder fit included), ``wall_s_per_trial`` (their mean), and the CPU and GPU seconds
     reserved for them (``wall_s`` x the spec's ``cpus_per_trial`` / ``gpus_per_trial``)."""
-    execution = (study_info(frame).attrs.get("spec") or {}).get("execution") or {}
-    cpus = float(execution.get("cpus_per_trial", 1.0))
-    gpus = float(execution.get("gpus_per_trial", 0.0))
+    cpus, gpus = reserved_per_trial(frame)
     done = trial_rows(scored(frame)).dropna(subset=["seconds"])
     result = {}
     for method, group in done.groupby("method"):
@@ -180,6 +189,13 @@ def compute_columns(frame: pd.DataFrame) -> dict[str, dict[str, float]]:
             "gpu_s": wall * gpus,
         }
     return result
+
+
+def reserved_per_trial(frame: pd.DataFrame) -> tuple[float, float]:
+    """The CPUs and GPUs the study's spec reserved for each trial (``execution``), which
+    turn a trial's wall seconds into the compute it held."""
+    execution = (study_info(frame).attrs.get("spec") or {}).get("execution") or {}
+    return float(execution.get("cpus_per_trial", 1.0)), float(execution.get("gpus_per_trial", 0.0))
 
 
 def success_matrices(frame: pd.DataFrame, metric: str = "success_rate"):
