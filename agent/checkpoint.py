@@ -5,8 +5,9 @@ directory or an object-store URI, ``agent.storage_io``), holding a ``Snapshot`` 
 training loop plus three checks: the format number, the trial config (without the
 ``RUNTIME_FIELDS``) and the owner (``TrialConfig.checkpoint_owner``, the sweeper's study
 uid). A SHA-256 digest of the contents is stored with them: a truncated or corrupt file
-is ignored with a warning, while an intact checkpoint of another config or owner is an
-error, since resuming it would mix two trials.
+is a ``CorruptCheckpoint`` (the trial then starts again from step 0 and says so), while an
+intact checkpoint of another config or owner is an error, since resuming it would mix two
+trials.
 
 ``save(directory, config, snapshot)`` and ``load(directory, config)`` are the whole
 interface. A write that fails for want of space or permission is raised as one OSError
@@ -18,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import errno
 import hashlib
-import warnings
 from typing import Any
 
 import numpy as np
@@ -83,10 +83,15 @@ def save(directory: str, config: TrialConfig, snapshot: Snapshot) -> None:
         raise error from exc
 
 
+class CorruptCheckpoint(Exception):
+    """A checkpoint file that is truncated or corrupt: it cannot be resumed, only replaced."""
+
+
 def load(directory: str, config: TrialConfig) -> Snapshot | None:
-    """The checkpoint in ``directory`` if there is one and it is intact, else None (with a
-    warning if it is corrupt). A checkpoint of another trial config, or of another owner
-    (``config.checkpoint_owner``, e.g. another study with the same spec), is a ValueError."""
+    """The checkpoint in ``directory``, or None if there is none. A truncated or corrupt
+    file raises ``CorruptCheckpoint`` (one line naming the file); a checkpoint of another
+    trial config, or of another owner (``config.checkpoint_owner``, e.g. another study with
+    the same spec), is a ValueError."""
     location = _location(directory)
     source = storage_io.open_read(location)
     if source is None:
@@ -98,8 +103,8 @@ def load(directory: str, config: TrialConfig) -> Snapshot | None:
         if state.get("format") != FORMAT or digest != _digest(state):
             raise ValueError("digest or format mismatch")
     except Exception as exc:
-        warnings.warn(f"ignoring corrupt checkpoint {location}: {exc}", stacklevel=2)
-        return None
+        reason = " ".join(str(exc).split())[:200] or type(exc).__name__
+        raise CorruptCheckpoint(f"corrupt checkpoint {location}: {reason}") from None
     if state.get("owner") != config.checkpoint_owner:
         raise ValueError(
             f"checkpoint_dir {directory!r} holds a checkpoint of another study "

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import time
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -57,6 +58,8 @@ from encoders.torch_base import resolve_device
 Report = Callable[[int, dict[str, float]], None]
 #: ``record(filename, data)``: a file the trial made (an episode video)
 Record = Callable[[str, bytes], None]
+#: ``notice(message)``: one line the user should see (a corrupt checkpoint discarded)
+Notice = Callable[[str], None]
 #: env steps of random policy measured for ``reward_scale="auto"`` (5 episodes, 5 goals)
 SCALE_STEPS = 5 * EPISODE_STEPS
 
@@ -213,12 +216,16 @@ def episode_video(
 
 # ---- the trial ----------------------------------------------------------------------------
 def train(
-    config: TrialConfig, report: Report | None = None, record: Record | None = None
+    config: TrialConfig,
+    report: Report | None = None,
+    record: Record | None = None,
+    notice: Notice | None = None,
 ) -> TrialResult:
     """Run one trial (see the module docstring); ``report(step, metrics)`` sees each
     evaluation, and again every evaluation restored from a checkpoint; ``record(filename,
     data)`` each episode video of ``config.video_steps`` (again after a resume that
-    re-runs its step)."""
+    re-runs its step); ``notice(message)`` a corrupt checkpoint discarded (also a
+    warning)."""
     start = time.perf_counter()
     torch.set_num_threads(config.threads)
     device = resolve_device(config.device)
@@ -228,7 +235,7 @@ def train(
         contextlib.closing(make_env(config.env, **make)) as env,
         contextlib.closing(make_env(config.env, **make)) as eval_env,
     ):
-        return _Trial(config, env, eval_env, device, report, record, start).run()
+        return _Trial(config, env, eval_env, device, report, record, start, notice).run()
 
 
 class _Trial:
@@ -244,9 +251,10 @@ class _Trial:
         report: Report | None,
         record: Record | None,
         start: float,
+        notice: Notice | None = None,
     ) -> None:
         self.config, self.env, self.eval_env, self.device = config, env, eval_env, device
-        self.report, self.record = report, record
+        self.report, self.record, self.notice = report, record, notice
         self.start = start  # time.perf_counter() when this run of the trial began
         torch.manual_seed(config.seed)
         self.rng = np.random.default_rng(_seed(config.seed, 0))  # random actions, replay sampling
@@ -407,7 +415,15 @@ class _Trial:
         everything it holds and report the curve so far again."""
         if not self.config.checkpoint_dir:
             return
-        saved = checkpoint.load(self.config.checkpoint_dir, self.config)
+        try:
+            saved = checkpoint.load(self.config.checkpoint_dir, self.config)
+        except checkpoint.CorruptCheckpoint as e:
+            # not resumable: the trial starts again, and says so where the user looks
+            message = f"discarded its {e}; the trial restarts from step 0"
+            warnings.warn(message, stacklevel=2)
+            if self.notice is not None:
+                self.notice(message)
+            return
         if saved is None:
             return
         self.step = self.resumed_from = self.checkpointed_at = saved.step

@@ -49,6 +49,8 @@ ANALYSES = (
 SUMMARY_COLUMNS = ["env", "analysis", "encoder", "metric", "value", "start"]
 #: the defaults of the options that set ``Settings``
 DEFAULTS = Settings()
+#: the most torch CPU threads ``--threads`` may ask for
+MAX_THREADS = 256
 
 
 class _DefaultsHelp(argparse.ArgumentDefaultsHelpFormatter):
@@ -219,6 +221,11 @@ def setup(
             shape = (env.image_size, env.image_size, 3)
             for n in names:
                 encoders[n] = make_encoder(n, shape, args.seed, args.device, **options[n])
+        for *_, out in built:  # last: nothing is created for arguments that fail
+            try:
+                out.mkdir(parents=True, exist_ok=True)
+            except OSError as err:
+                raise UsageError(f"--out: cannot create {out}: {err.strerror}") from None
     except ValueError:
         close_all(built)
         raise
@@ -252,7 +259,6 @@ def diagnose_env(
     from sweeper.analyses import RUNNERS, Target
 
     progress = not settings.quiet
-    out.mkdir(parents=True, exist_ok=True)
     # what the encoders see: the camera view after a few resets beside their goal images
     env_views(env_name, out / "views.png", image_size=env.image_size, seed=settings.seed)
     frames: dict[int, Any] = {}  # by count: VAE and CVAE share their frames
@@ -269,14 +275,16 @@ def diagnose_env(
 
 
 def run(args: argparse.Namespace) -> int:
-    """``sweeper diagnose``: exit 0, or 2 with a one-line message on a bad argument."""
+    """``sweeper diagnose``: exit 0, or 2 with a one-line message on a bad argument
+    (every one checked before any work: counts within ``MAX_COUNTS``, the seed, the
+    output folder) or an output that cannot be written."""
     # torch and pandas load only when the command runs, so `sweeper diagnose --help` stays light
     import pandas as pd
     import torch
 
     try:
-        if args.threads < 1:
-            raise UsageError("--threads must be positive")
+        if not 1 <= args.threads <= MAX_THREADS:
+            raise UsageError(f"--threads must be in [1, {MAX_THREADS}], got {args.threads}")
         torch.set_num_threads(args.threads)
         settings, analyses, built = setup(args)
     except ValueError as err:
@@ -291,7 +299,7 @@ def run(args: argparse.Namespace) -> int:
                 summary = summary.reindex(columns=SUMMARY_COLUMNS)
                 summary.to_csv(out / "summary.csv", index=False)
                 print(summary.to_string(index=False))
-    except ValueError as err:
+    except (ValueError, OSError) as err:  # OSError: the output folder filled up, say
         print(f"sweeper diagnose: error: {err}", file=sys.stderr)
         return 2
     finally:

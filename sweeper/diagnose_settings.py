@@ -16,6 +16,29 @@ ARM_OBJECT_ENVS = ("fetch_push",)
 START_MODES = ("reset", "uniform")
 
 
+#: the largest value of each count: generous for real use (the defaults are 8 to 300),
+#: bounded so that a slip of the keyboard cannot run for days or fill the memory (an
+#: analysis holds the images of its samples at once: 10,000 pairs of 84x84 frames take
+#: 0.4 GB; a 64x64 topology grid is 4,096 states and their isomap)
+MAX_COUNTS = {
+    "episodes": 100_000,
+    "gradient_states": 10_000,
+    "directions": 1_000,
+    "pairs": 10_000,
+    "grid_size": 64,
+    "variance_states": 10_000,
+    "precision_goals": 1_000,
+    "precision_states": 10_000,
+    "descent_episodes": 10_000,
+    "descent_horizon": 1_000,
+    "descent_candidates": 100,
+}
+#: the smallest value of each count (an analysis needs that many to mean anything)
+MIN_COUNTS = {"pairs": 3, "grid_size": 5, "precision_states": 2, "descent_candidates": 2}
+#: seeds, as a study spec takes them
+MAX_SEED = 2**32 - 1
+
+
 class UsageError(ValueError):
     """A bad argument: reported in one line, exit code 2."""
 
@@ -47,26 +70,20 @@ class Settings:
     quiet: bool = False  # no progress lines
 
     def __post_init__(self) -> None:
-        counts = ("episodes", "gradient_states", "directions", "pairs", "variance_states",
-                  "precision_goals", "precision_states", "descent_episodes",
-                  "descent_horizon")  # fmt: skip
-        for name in counts:
-            if getattr(self, name) < 1:
-                raise UsageError(f"--{name.replace('_', '-')} must be positive")
-        if self.pairs < 3:
-            raise UsageError("--pairs must be at least 3")
-        if self.grid_size < 5:
-            raise UsageError("--grid-size must be at least 5")
-        if not self.alpha > 0:
-            raise UsageError("--alpha must be positive")
-        if self.precision_states < 2:
-            raise UsageError("--precision-states must be at least 2")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise UsageError(f"--seed must be in [0, {MAX_SEED}], got {self.seed}")
+        for name, most in MAX_COUNTS.items():
+            value, least = getattr(self, name), MIN_COUNTS.get(name, 1)
+            if not least <= value <= most:
+                raise UsageError(
+                    f"--{name.replace('_', '-')} must be in [{least}, {most}], got {value}"
+                )
+        if not 0 < self.alpha < math.inf:
+            raise UsageError(f"--alpha must be positive and finite, got {self.alpha}")
         if not 0 < self.success_radius < self.precision_radius < math.inf:
             raise UsageError("need 0 < --success-radius < --precision-radius")
         if not 0 <= self.min_goal_distance < math.inf:
             raise UsageError("--min-goal-distance must be finite and at least 0")
-        if self.descent_candidates < 2:
-            raise UsageError("--descent-candidates must be at least 2")
         if not 0 < self.descent_step <= 1:
             raise UsageError("--descent-step must be in (0, 1]")
         if self.start not in START_MODES:

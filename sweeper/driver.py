@@ -4,8 +4,9 @@
 trial per actor at a time, in ``run_order`` (round by round, so a study stopped part-way
 stays paired), and writes what comes back, one method per event of ``WorkerPool.poll``:
 reports stream in as intermediate values and the ``curve`` attr, a recorded video is
-stored once per trial (``store_artifact``), and a finished trial is told its AUC
-(``record_result``), its checkpoint then removed.
+stored once per trial (``store_artifact``), what a trial says (a corrupt checkpoint it
+discarded) is shown and kept in its ``notices`` attr, and a finished trial is told its
+AUC (``record_result``), its checkpoint then removed.
 
 Failures: a worker that dies, or stops answering for ``execution.stall_timeout`` s, is
 replaced and the trial re-run from its checkpoint, with the same parameters and seed, in
@@ -40,6 +41,7 @@ from sweeper.execution import (
     Event,
     Finished,
     Lost,
+    Noticed,
     Recorded,
     Reported,
     Started,
@@ -67,6 +69,7 @@ class Job:
     deaths: list[str] = field(default_factory=list)
     points: dict[int, dict[str, float]] = field(default_factory=dict)
     artifacts: dict[str, str] = field(default_factory=dict)  # filename -> artifact id
+    notices: list[str] = field(default_factory=list)  # what its runs said (Noticed)
 
     @property
     def key(self) -> str:
@@ -184,6 +187,8 @@ class Driver:
                 self.reported(job, event)
             case Recorded():
                 self.recorded(job, event)
+            case Noticed():
+                self.noticed(job, event)
             case Finished():
                 self.finished(job, event)
             case Errored():
@@ -202,6 +207,13 @@ class Driver:
 
     def recorded(self, job: Job, event: Recorded) -> None:
         store_artifact(self.store, self.artifacts, job, event, self.progress)
+
+    def noticed(self, job: Job, event: Noticed) -> None:
+        """What a trial said (it discarded a corrupt checkpoint): in the launch's output,
+        and in the trial's ``notices`` attr."""
+        job.notices.append(event.message)
+        self.store.set_attrs(job.trial_id, {"notices": job.notices})
+        self.progress.note(f"{job.key}: {event.message}")
 
     def finished(self, job: Job, event: Finished) -> None:
         result = event.result

@@ -281,10 +281,13 @@ class TrialWorker:
             calls: dict[str, Any] = {
                 "report": lambda step, metrics: self._push(token, step, metrics)
             }
-            if "record" in inspect.signature(train).parameters:  # agent.train's videos
+            parameters = inspect.signature(train).parameters
+            if "record" in parameters:  # agent.train's videos
                 calls["record"] = lambda name, data: self._push(
                     token, "recorded", {"filename": name, "data": data}
                 )
+            if "notice" in parameters:  # agent.train's corrupt checkpoint, discarded
+                calls["notice"] = lambda message: self._push(token, "notice", {"message": message})
             result = train(config, **calls)
             outcome: dict[str, Any] = {"result": result}
         except Exception as e:
@@ -294,7 +297,7 @@ class TrialWorker:
 
     def drain(self) -> list[tuple[str, Any, Any]]:
         """Events since the last drain: ``(token, "where", {...})``, ``(token, step, metrics)``,
-        ``(token, "recorded", {"filename", "data"})``."""
+        ``(token, "recorded", {"filename", "data"})``, ``(token, "notice", {"message"})``."""
         with self._lock:
             events, self._events = self._events, []
         return events
@@ -332,6 +335,12 @@ class Recorded:
 
 
 @dataclass(frozen=True)
+class Noticed:
+    token: str
+    message: str  # one line the user should see (a corrupt checkpoint discarded)
+
+
+@dataclass(frozen=True)
 class Finished:
     token: str
     result: Any  # what train returned
@@ -350,7 +359,7 @@ class Lost:
     error: str  # why Ray says the worker is gone
 
 
-Event = Started | Reported | Recorded | Finished | Errored | Lost
+Event = Started | Reported | Recorded | Noticed | Finished | Errored | Lost
 
 
 @dataclass
@@ -537,6 +546,8 @@ class WorkerPool:
                 events.append(Started(token, payload))
             elif step == "recorded":
                 events.append(Recorded(token, payload["filename"], payload["data"]))
+            elif step == "notice":
+                events.append(Noticed(token, payload["message"]))
             else:
                 events.append(Reported(token, int(step), payload))
         return events

@@ -1,13 +1,15 @@
 """The launch sequence of a study: from a spec to a claimed, synced study driven on Ray.
 
 ``prepare`` validates everything first (spec, env and encoder options, storage URL), and
-``launch`` checks that the database can be written and that Ray can be reached before it
-opens the study, so a bad input exits with code 2 and writes nothing. A relaunch with
-every key done (``all_done``) exits 0 without starting Ray. Otherwise it sizes the worker
-pool to the cluster (``sweeper.resources``), opens the study as its writer, claims it,
-gives every plan key that is not done a WAITING trial (``StudyStore.sync``), measures the
-random agent once per study (``sweeper.random_agent``), and hands the keys to the
-``sweeper.driver.Driver`` loop.
+``launch`` checks that the database can be written and read (an existing study is read,
+its file checked for damage, an outage waited out for ``execution.storage_grace``) and
+that Ray can be reached before it opens the study as its writer, so a bad input exits
+with code 2 and writes nothing. A relaunch with every key done (``all_done``) exits 0
+without starting Ray. Otherwise it sizes the worker pool to the cluster
+(``sweeper.resources``), opens the study as its writer (a failure then, an outage past
+the grace or a full disk, is one line too), claims it, gives every plan key that is not
+done a WAITING trial (``StudyStore.sync``), measures the random agent once per study
+(``sweeper.random_agent``), and hands the keys to the ``sweeper.driver.Driver`` loop.
 
 Ctrl-C or SIGTERM, at any moment of a launch, stops the workers and marks the trials in
 flight ``interrupted``; a relaunch resumes them from their checkpoints. Exit codes: 0 all
@@ -53,7 +55,7 @@ from sweeper.storage import (
     package_versions,
     redact,
 )
-from sweeper.study import open_study
+from sweeper.study import NoStudy, open_study
 
 #: what a driver runs once it holds the study: its plan, bound to the study
 Stage = Callable[[StudySpec, StudyStore], Plan]
@@ -154,10 +156,10 @@ def launch(
     with sigterm_stops():
         try:
             check_writable(spec.storage_url)
+            study = read_study(spec, plan)
         except StorageError as e:
             print(f"sweeper launch: {e}", file=stream)
             return 2
-        study = read_study(spec, plan)
         runs = without(plan, skip)
         if stage is None and all_done(spec, runs, study):  # a relaunch with nothing left: no Ray
             total = done = len(plan.entries)
@@ -206,14 +208,19 @@ def _start_ray_and_launch(
 
 
 def read_study(spec: StudySpec, plan: Plan) -> tuple[list[Any], dict[str, Any]] | None:
-    """The study's trials and user attrs, read read-only; None when there is nothing to
-    read (no study, another plan, an unreachable database: the launch then reports it)."""
+    """The study's trials and user attrs, read read-only before Ray starts; None when there
+    is nothing to read yet (``NoStudy``). Raises StorageError when the database cannot be
+    used (damaged, launched with another plan, out for longer than the grace)."""
     try:
         with open_study(
-            spec.storage_url, spec.study, write=False, plan_hash=plan.hash, grace=0
+            spec.storage_url,
+            spec.study,
+            write=False,
+            plan_hash=plan.hash,
+            grace=spec.execution.storage_grace,
         ) as store:
             return store.trials(), store.attrs
-    except StorageError:
+    except NoStudy:
         return None
 
 

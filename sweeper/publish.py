@@ -13,6 +13,10 @@ Safe while the study runs, so a long study can be published as it goes:
 - ``aggregate/``: ``sweeper aggregate`` of the copy (nothing saved into it for the
   dashboard: the copy holds what the driver last saved).
 
+The copy is checked with SQLite's ``integrity_check`` before it replaces anything: a
+damaged study is refused with one line, and the folder is left as it was. A study not
+finished yet is published as it is, with a line saying that the copy is partial.
+
 Only SQLite studies: a PostgreSQL study is refused with one line (copy it into SQLite with
 ``optuna copy-study`` first). Exit 0, or 2 with one line.
 """
@@ -20,6 +24,7 @@ Only SQLite studies: a PostgreSQL study is refused with one line (copy it into S
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import shutil
 import sqlite3
@@ -27,7 +32,16 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from sweeper.storage import StorageError, redact, resolve_url, sqlite_path
+from sweeper.storage import (
+    StorageError,
+    damage,
+    damaged_error,
+    is_damaged,
+    ledger,
+    redact,
+    resolve_url,
+    sqlite_path,
+)
 
 if TYPE_CHECKING:
     from sweeper.spec import StudySpec
@@ -40,19 +54,55 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def copy_database(source: Path, target: Path) -> None:
     """``source`` copied to ``target`` with SQLite's backup API, as one file (journal mode
-    DELETE), replacing ``target``; the source is opened read-only."""
+    DELETE), replacing ``target`` only once the copy passes SQLite's integrity check (else a
+    StorageError, and ``target`` is left as it was); the source is opened read-only."""
+    made = not target.parent.exists()
     target.parent.mkdir(parents=True, exist_ok=True)
     partial = target.with_name(target.name + ".partial")
     partial.unlink(missing_ok=True)
-    live = sqlite3.connect(f"file:{source}?mode=ro", uri=True)
-    copy = sqlite3.connect(partial)
+
+    def undo() -> None:  # nothing half-written stays behind
+        partial.unlink(missing_ok=True)
+        if made:
+            with contextlib.suppress(OSError):  # not empty: someone else's files
+                target.parent.rmdir()
+
     try:
-        live.backup(copy)
-        copy.execute("PRAGMA journal_mode=DELETE")
-    finally:
-        copy.close()
-        live.close()
+        live = sqlite3.connect(f"file:{source}?mode=ro", uri=True)
+        copy = sqlite3.connect(partial)
+        try:
+            live.backup(copy)
+            copy.execute("PRAGMA journal_mode=DELETE")
+        finally:
+            copy.close()
+            live.close()
+        problem = damage(partial, thorough=True)
+    except sqlite3.DatabaseError as e:  # the source cannot even be read whole
+        if not is_damaged(e):
+            undo()
+            raise
+        problem = str(e)
+    except BaseException:
+        undo()
+        raise
+    if problem is not None:
+        undo()
+        raise damaged_error(f"sqlite:///{source}", problem)
     partial.replace(target)
+
+
+def unfinished(url: str, study: str) -> tuple[int, int] | None:
+    """``(done, planned)`` trials of the published copy ``url`` (its plan, and the keys of a
+    confirmation stage), or None when every planned trial is done. The copy is not
+    driven: a trial RUNNING there is left, as a relaunch would count it."""
+    from sweeper.study import open_study
+
+    with open_study(url, study, write=False) as store:
+        attrs = store.attrs
+        keys = [*(attrs.get("plan") or []), *((attrs.get("confirm") or {}).get("keys") or [])]
+        counts = ledger(keys, store.trials(), driver_alive=False).values()
+    done, planned = sum(c.done for c in counts), sum(c.planned for c in counts)
+    return None if done == planned else (done, planned)
 
 
 def release_driver(url: str, study: str) -> None:
@@ -99,9 +149,14 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
         artifacts = str(out / "artifacts") if copied else None
         result = aggregate(url, spec.study, out / "aggregate", seed=spec.seed, dashboard=False,
                            artifacts=artifacts)  # fmt: skip
+        partial = unfinished(url, spec.study)
     except (ValueError, OSError, sqlite3.Error) as e:  # StorageError is a ValueError
         print(f"sweeper publish: {e}", file=sys.stderr)
         return 2
     print(f"published study {spec.study!r} to {out}: study.db, status.txt, "
           f"{'artifacts/, ' if copied else ''}aggregate/ (report: {result.report})")  # fmt: skip
+    if partial is not None:
+        done, planned = partial
+        print(f"the study is unfinished ({done} of {planned} trials done): the published copy "
+              "is partial; publish again once it ends")  # fmt: skip
     return 0

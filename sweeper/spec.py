@@ -41,7 +41,7 @@ from pydantic import (
 from agent.config import EPISODE_STEPS, SACConfig
 from encoders.options import hyperparameters
 from sweeper.halving import DEFAULT_KEEP, default_rungs
-from sweeper.spec_errors import format_errors, spec_error, suggest
+from sweeper.spec_errors import excerpt, format_errors, spec_error, suggest
 from sweeper.spec_space import (
     Method,
     StrictModel,
@@ -66,6 +66,8 @@ MAX_ENV_STEPS = 10**9
 MAX_GRID_POINTS = 10_000
 MAX_PLAN_KEYS = 20_000
 MAX_SPEC_BYTES = 1 << 20
+#: the most errors a SpecError's message lists (its ``errors`` holds them all)
+MAX_ERRORS = 5
 _URL_RE = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 
 
@@ -85,7 +87,7 @@ def _reward_scale(value: Any) -> str | float:
     if value == "auto":
         return value
     if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < math.inf:
-        raise spec_error(f"must be 'auto' or a positive number, got {value!r}")
+        raise spec_error(f"must be 'auto' or a positive number, got {excerpt(value)}")
     return float(value)
 
 
@@ -98,7 +100,9 @@ def _video_steps(value: Any) -> str | tuple[int, ...]:
     steps = value if isinstance(value, list | tuple) else [value]
     for step in steps:
         if isinstance(step, bool) or not isinstance(step, int) or step < 0:
-            raise spec_error(f"must be 'last', 'none' or a list of env steps >= 0, got {value!r}")
+            raise spec_error(
+                f"must be 'last', 'none' or a list of env steps >= 0, got {excerpt(value)}"
+            )
     return tuple(sorted(set(steps)))
 
 
@@ -118,7 +122,7 @@ def _check_env_option(value: Any, like: Any, at: str) -> None:
     else:
         ok, what = isinstance(value, bool | int | float | str), "a string, number or boolean"
     if not ok:
-        raise spec_error(f"must be {what}, got {value!r}", at=at)
+        raise spec_error(f"must be {what}, got {excerpt(value)}", at=at)
 
 
 # ---- the spec -------------------------------------------------------------------------------
@@ -342,7 +346,8 @@ class StudySpec(StrictModel):
             )
         if not _NAME_RE.match(study) or study.startswith("."):
             raise spec_error(
-                f"must be letters, digits, '_', '.', '-' (not starting with '.'), got {study!r}"
+                "must be letters, digits, '_', '.', '-' (not starting with '.'), "
+                f"got {excerpt(study)}"
             )
         return study
 
@@ -372,7 +377,7 @@ class StudySpec(StrictModel):
         if storage is not None and not _URL_RE.match(storage):
             raise spec_error(
                 "must be an SQLAlchemy URL such as sqlite:///runs/study.db or "
-                f"postgresql+psycopg://user@host/db, or null; got {storage!r}"
+                f"postgresql+psycopg://user@host/db, or null; got {excerpt(storage)}"
             )
         return storage
 
@@ -424,7 +429,9 @@ class StudySpec(StrictModel):
                     at="halving.rungs",
                 )
         if list(rungs) != sorted(set(rungs)):
-            raise spec_error(f"must increase strictly, got {list(rungs)}", at="halving.rungs")
+            raise spec_error(
+                f"must increase strictly, got {excerpt(list(rungs))}", at="halving.rungs"
+            )
         return self
 
     @property
@@ -567,7 +574,9 @@ def parse_spec(data: Any, source: str = "spec") -> StudySpec:
         return StudySpec.model_validate(data)
     except ValidationError as exc:
         errors = format_errors(exc, StudySpec)
-        detail = "; ".join(f"{path}: {message}" for path, message in errors)
+        detail = "; ".join(f"{path}: {message}" for path, message in errors[:MAX_ERRORS])
+        if len(errors) > MAX_ERRORS:  # a list of thousands of bad values: a line, not pages
+            detail += f"; and {len(errors) - MAX_ERRORS} more errors"
         raise SpecError(f"{source}: {detail}", errors) from None
 
 

@@ -4,16 +4,41 @@
 being validated, and its ``at`` extends that path (``methods.vae`` + ``beta``).
 ``format_errors`` turns a pydantic ``ValidationError`` into (dotted path, message) pairs
 (``sac.lr[1]``, ``methods.vae.beta``), a missing field's message with its description;
-``suggest`` names the closest allowed word for a typo.
+``suggest`` names the closest allowed word for a typo. A message shows a value as a short
+``excerpt`` and a name with its control characters escaped (``printable``): a spec can
+hold a value of any size, and an escape sequence in a name must not reach the terminal.
 """
 
 from __future__ import annotations
 
 import difflib
+import reprlib
 from typing import Any
 
 from pydantic import ValidationError
 from pydantic_core import PydanticCustomError
+
+#: the most characters of a value an error message shows
+EXCERPT = 60
+#: the most characters of one error (its field path, its message)
+MAX_MESSAGE = 400
+_REPR = reprlib.Repr()  # Python 3.11's takes no arguments
+_REPR.maxlevel, _REPR.maxstring, _REPR.maxother = 2, EXCERPT, EXCERPT
+_REPR.maxdict = _REPR.maxlist = _REPR.maxtuple = _REPR.maxset = 4
+
+
+def excerpt(value: Any) -> str:
+    """``repr(value)`` cut short (a few items of a container, ``EXCERPT`` characters), in
+    time and memory bounded whatever the value's size; control characters escaped."""
+    text = _REPR.repr(value)
+    return text if len(text) <= EXCERPT else text[: EXCERPT - 3] + "..."
+
+
+def printable(text: str, limit: int = MAX_MESSAGE) -> str:
+    """``text`` with its control characters escaped (``\\x1b``, ``\\n``), cut at ``limit``."""
+    text = text[: limit + 1]
+    text = "".join(c if c.isprintable() else c.encode("unicode_escape").decode() for c in text)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def spec_error(message: str, at: str = "") -> PydanticCustomError:
@@ -71,6 +96,6 @@ def format_errors(exc: ValidationError, model: Any) -> list[tuple[str, str]]:
         else:
             path, message = _dotted(loc), err["msg"]
             if not isinstance(err.get("input"), dict):
-                message += f", got {err['input']!r}"
-        errors.append((path or "spec", message))
+                message += f", got {excerpt(err['input'])}"
+        errors.append((printable(path or "spec"), printable(message)))
     return errors

@@ -36,7 +36,7 @@ from encoders.options import (
     value_type,
     with_env_fallbacks,
 )
-from sweeper.spec_errors import format_errors, spec_error, suggest
+from sweeper.spec_errors import excerpt, format_errors, spec_error, suggest
 
 
 def as_choices(value: Any) -> Any:
@@ -58,7 +58,7 @@ def as_size_choices(value: Any) -> Any:
 def distinct(choices: tuple[Any, ...]) -> tuple[Any, ...]:
     """The choices, unchanged, if no two are equal (a repeated one would weigh double)."""
     if len(set(choices)) != len(choices):
-        raise spec_error(f"choices must be distinct, got {list(choices)}")
+        raise spec_error(f"choices must be distinct, got {excerpt(list(choices))}")
     return choices
 
 
@@ -171,7 +171,7 @@ def parse_sac_overrides(name: str, given: Any) -> dict[str, Any]:
     if not isinstance(given, dict) or not given:
         raise spec_error(
             f"must be a mapping of SAC fields to one value each, e.g. {{batch_size: 128}}, "
-            f"got {given!r}",
+            f"got {excerpt(given)}",
             at=f"{name}.sac",
         )
     model = search_space(SACConfig)
@@ -192,7 +192,7 @@ def parse_sac_overrides(name: str, given: Any) -> dict[str, Any]:
         if more:
             raise spec_error(
                 f"a method fixes one value (the study's sac.{key} is what is sampled), "
-                f"got {value!r}",
+                f"got {excerpt(value)}",
                 at=f"{name}.sac.{key}",
             )
         fixed[key] = choice
@@ -206,7 +206,8 @@ def parse_method(name: str, options: Any) -> Method:
         options = {}
     if not isinstance(options, dict):
         raise spec_error(
-            f"must be a mapping of options (or {{}} for the defaults), got {options!r}", at=name
+            f"must be a mapping of options (or {{}} for the defaults), got {excerpt(options)}",
+            at=name,
         )
     options = dict(options)
     allowed = method_names()
@@ -217,7 +218,7 @@ def parse_method(name: str, options: Any) -> Method:
             raise spec_error(
                 f"a variant's encoder must be an encoder name; "
                 f"{suggest(encoder, list(encoder_names()))}allowed: {', '.join(encoder_names())}"
-                f"; got {encoder!r}",
+                f"; got {excerpt(encoder)}",
                 at=f"{name}.encoder",
             )
         if name in allowed:
@@ -229,7 +230,7 @@ def parse_method(name: str, options: Any) -> Method:
         if not _VARIANT_RE.match(name) or name == "confirm":
             raise spec_error(
                 "a variant's name must be a letter, then letters, digits, '_' or '-' (at most "
-                f"64 characters, not 'confirm'), got {name!r}",
+                f"64 characters, not 'confirm'), got {excerpt(name)}",
                 at=name,
             )
     elif name not in allowed:

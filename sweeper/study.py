@@ -12,19 +12,30 @@ module sits above ``sweeper.storage``: it uses its URLs, errors and ``StudyStore
 nothing there imports it.
 
 Nothing to read (no database file, a database without Optuna's tables, no study of that
-name) is a ``NoStudy``, whose message says how to create the study.
+name) is a ``NoStudy``, whose message says how to create the study. A damaged SQLite file
+is a StorageError that says how to get the study back (``check_intact``), and an outage
+while the study is opened is retried for the grace, as one later (``retry_outages``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import sqlite3
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from sweeper.storage.errors import StorageError, check_plan, database_error, redact
-from sweeper.storage.urls import open_engine, open_storage, resolve_url, sqlite_path
-from sweeper.storage.writer import CURVE_ATTR, STORAGE_GRACE, StudyStore
+from sweeper.storage.errors import (
+    StorageError,
+    check_plan,
+    damaged_error,
+    database_error,
+    is_damaged,
+    reason_of,
+    redact,
+)
+from sweeper.storage.urls import check_intact, open_engine, open_storage, resolve_url, sqlite_path
+from sweeper.storage.writer import CURVE_ATTR, STORAGE_GRACE, StudyStore, retry_outages
 
 if TYPE_CHECKING:  # pandas and sqlalchemy are imported where used: `sweeper --help` stays light
     import pandas as pd
@@ -63,33 +74,63 @@ def open_study(
     needed, with study user attrs ``attrs``, whose ``plan_hash`` must match the stored one.
     ``write=True, create=False`` (optuna-dashboard, which edits notes): an existing study,
     else NoStudy. ``plan_hash``: the study must have been launched with this plan (a study
-    without one passes). Database outages are retried for ``grace`` seconds
+    without one passes). An SQLite file is checked for damage first (``check_intact``).
+    Database outages are retried for ``grace`` seconds, while opening as later
     (``StudyStore``). Raises StorageError (a ValueError) with a one-line message.
     """
     import optuna
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    if write and create:
-        storage = open_storage(url)
-    else:
-        with _reader(url) as connection:
-            _study_id(connection, url, name)
-        storage = _open(url, read_only=not write)
+    if write and create and attrs is None:
+        raise ValueError("open_study(write=True) needs the study's attrs")
+    then = "launch again" if write and create else "try again"
+    store = retry_outages(
+        lambda: _open(url, name, write=write, create=create, attrs=attrs, grace=grace),
+        url,
+        grace,
+        then,
+    )
     try:
-        if write and create:
-            if attrs is None:
-                raise ValueError("open_study(write=True) needs the study's attrs")
-            store = StudyStore.open_or_create(storage, name, attrs, grace)
-        else:
-            store = StudyStore.find(storage, name, grace)
-            if store is None:  # deleted since the check above
-                raise NoStudy(f"study {name!r} not found in {redact(url)}", "no such study")
         if plan_hash is not None:
             check_plan(name, store.attrs, plan_hash)
         yield store
     finally:
-        storage.remove_session()
-        storage.engine.dispose()
+        _close(store.storage)
+
+
+def _open(
+    url: str,
+    name: str,
+    *,
+    write: bool,
+    create: bool,
+    attrs: Mapping[str, Any] | None,
+    grace: float,
+) -> StudyStore:
+    """One try at opening the study (``open_study``); a database error is raised as it is,
+    for ``retry_outages`` to retry or to put in one line."""
+    if write and create:
+        check_intact(url)
+        storage = open_storage(url)
+    else:
+        with _reader(url) as connection:
+            _study_id(connection, url, name)
+        storage = open_storage(url, create=False, read_only=not write)
+    try:
+        if write and create:
+            return StudyStore.open_or_create(storage, name, attrs or {}, grace)
+        store = StudyStore.find(storage, name, grace)
+        if store is None:  # deleted since the check above
+            raise NoStudy(f"study {name!r} not found in {redact(url)}", "no such study")
+        return store
+    except BaseException:
+        _close(storage)
+        raise
+
+
+def _close(storage: Any) -> None:
+    storage.remove_session()
+    storage.engine.dispose()
 
 
 @dataclass(frozen=True)
@@ -117,9 +158,9 @@ def read_rows(url: str, name: str) -> StudyRows:
     from sqlalchemy import text
     from sqlalchemy.exc import SQLAlchemyError
 
-    with _reader(url) as connection:
-        study_id = _study_id(connection, url, name)
-        try:
+    try:
+        with _reader(url) as connection:
+            study_id = _study_id(connection, url, name)
 
             def query(sql: str) -> pd.DataFrame:
                 return pd.read_sql_query(text(sql), connection, params={"study": study_id})
@@ -151,15 +192,19 @@ def read_rows(url: str, name: str) -> StudyRows:
                     "SELECT key, value_json FROM study_user_attributes WHERE study_id = :study"
                 ),
             )
-        except SQLAlchemyError as e:  # a locked or corrupt file, a server gone meanwhile
-            raise database_error("cannot read", url, e) from None
+    except (SQLAlchemyError, sqlite3.Error) as e:  # a locked file, a server gone meanwhile
+        if is_damaged(e):
+            raise damaged_error(url, reason_of(e)) from None
+        raise database_error("cannot read", url, e) from None
 
 
 @contextlib.contextmanager
 def _reader(url: str) -> Iterator[Connection]:
-    """A read-only connection to ``url``'s database, which must hold Optuna's tables."""
+    """A read-only connection to ``url``'s database, which must hold Optuna's tables and,
+    SQLite, be intact (``check_intact``). Raises NoStudy or StorageError for a URL or file
+    that is not there; a database error as it is (the callers put it in one line)."""
     from sqlalchemy import inspect
-    from sqlalchemy.exc import ArgumentError, SQLAlchemyError
+    from sqlalchemy.exc import ArgumentError
 
     resolved = resolve_url(url)
     try:
@@ -174,16 +219,9 @@ def _reader(url: str) -> Iterator[Connection]:
             "no database file",
         )
     try:
-        try:
-            connection = engine.connect()
-        except SQLAlchemyError as e:  # an unreachable server, an unreadable file
-            raise database_error("cannot read", url, e) from None
-        with connection:
-            try:
-                tables = inspect(connection).has_table("studies")
-            except SQLAlchemyError as e:  # not a database file
-                raise database_error("cannot read", url, e) from None
-            if not tables:
+        check_intact(url)
+        with engine.connect() as connection:
+            if not inspect(connection).has_table("studies"):
                 raise NoStudy(
                     f"storage: {redact(url)} holds no Optuna study (an empty database); "
                     f"{CREATE_HINT}",
@@ -209,17 +247,6 @@ def _study_id(connection: Connection, url: str, name: str) -> int:
             "no such study",
         )
     return int(found)
-
-
-def _open(url: str, *, read_only: bool) -> Any:
-    """Optuna's storage of an existing database; StorageError when it cannot be opened."""
-    import optuna
-    from sqlalchemy.exc import SQLAlchemyError
-
-    try:
-        return open_storage(url, create=False, read_only=read_only)
-    except (SQLAlchemyError, optuna.exceptions.StorageInternalError) as e:
-        raise database_error("cannot read", url, e) from None
 
 
 def stored_files(spec: StudySpec) -> StudySpec:

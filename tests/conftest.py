@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import random
 import selectors
 import signal
 import subprocess
@@ -43,6 +44,25 @@ def tiny(**changes: Any) -> TrialConfig:
         device="cpu",
     )
     return TrialConfig(**{**base, **changes})
+
+
+#: a finished study, as published (its spec: studies/fetch_reach_cpu.yaml)
+PUBLISHED = ROOT / "docs" / "studies" / "fetch_reach_cpu"
+#: how ``damage`` can damage an SQLite file
+DAMAGE = ["truncated", "not a database", "overwritten"]
+
+
+def damage(path: Path, how: str) -> None:
+    """Damage the SQLite file ``path`` as ``how`` (one of ``DAMAGE``) says."""
+    data = path.read_bytes()
+    if how == "truncated":
+        path.write_bytes(data[: len(data) // 3])
+    elif how == "not a database":
+        path.write_bytes(b"this is not a database\n" * 200)
+    else:  # two pages in the middle overwritten, as a stray write or a bad disk leaves it
+        middle = len(data) // 2 // 4096 * 4096
+        garbage = random.Random(0).randbytes(8192)
+        path.write_bytes(data[:middle] + garbage + data[middle + len(garbage) :])
 
 
 def write_ci_spec(path: Path, **changes: Any) -> Path:

@@ -210,9 +210,13 @@ def test_corrupt_checkpoint_is_ignored(tmp_path: Path) -> None:
     data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 0xFF  # one flipped byte in the middle
     path.write_bytes(bytes(data))
+    notices: list[str] = []  # the driver shows them and keeps them in the trial's record
     with pytest.warns(UserWarning, match="corrupt checkpoint"):
-        again = agent.train(config)
+        again = agent.train(config, notice=notices.append)
     assert again.resumed_from is None and again.metrics == first.metrics
+    (notice,) = notices
+    assert notice.startswith(f"discarded its corrupt checkpoint {path}: ")
+    assert notice.endswith("; the trial restarts from step 0") and "\n" not in notice
     path.write_bytes(path.read_bytes()[:1000])  # truncated
     with pytest.warns(UserWarning, match="corrupt checkpoint"):
         assert agent.train(config).resumed_from is None

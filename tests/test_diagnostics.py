@@ -476,8 +476,21 @@ def test_cli_on_fetch_push(tmp_path) -> None:
         (["--option", "vae.beta=3"], "not in --encoders"),
         (["--analyses", "gradient,isomap"], "unknown analysis 'isomap'"),
         (["--grid-dims", "x,q"], "unknown state 'q'; states: x, y"),
-        (["--pairs", "0"], "--pairs must be positive"),
-        (["--precision-states", "1"], "--precision-states must be at least 2"),
+        (["--pairs", "0"], r"--pairs must be in \[3, 10000\], got 0"),
+        (["--precision-states", "1"], r"--precision-states must be in \[2, 10000\], got 1"),
+        # issue 35: a traceback, or hours and GBs without a word
+        (["--seed", "-1"], r"--seed must be in \[0, 4294967295\], got -1"),
+        (["--pairs", "1000000000000"], r"--pairs must be in \[3, 10000\], got 1000000000000"),
+        (["--gradient-states", "1000000000000"], r"--gradient-states must be in \[1, 10000\]"),
+        (["--directions", "1000000"], r"--directions must be in \[1, 1000\]"),
+        (["--grid-size", "100000"], r"--grid-size must be in \[5, 64\]"),
+        (["--episodes", "0"], r"--episodes must be in \[1, 100000\]"),
+        (["--descent-episodes", "1000000000"], r"--descent-episodes must be in \[1, 10000\]"),
+        (["--descent-horizon", "1000000"], r"--descent-horizon must be in \[1, 1000\]"),
+        (["--descent-candidates", "1000000"], r"--descent-candidates must be in \[2, 100\]"),
+        (["--descent-step", "inf"], r"--descent-step must be in \(0, 1\]"),
+        (["--alpha", "inf"], "--alpha must be positive and finite, got inf"),
+        (["--threads", "100000"], r"--threads must be in \[1, 256\]"),
         (["--success-radius", "0.2"], "need 0 < --success-radius < --precision-radius"),
         (["--min-goal-distance", "-1"], "--min-goal-distance must be finite and at least 0"),
         (["--min-goal-distance", "nan"], "--min-goal-distance must be finite and at least 0"),
@@ -492,6 +505,27 @@ def test_cli_bad_input_exits_2_with_a_message(args, message, capsys, tmp_path) -
     assert err.startswith("sweeper diagnose: error:") and len(err.strip().splitlines()) == 1
     assert re.search(message, err)
     assert not any(tmp_path.iterdir())
+
+
+def test_an_out_folder_that_cannot_be_created_is_one_line(capsys, tmp_path) -> None:
+    (tmp_path / "a_file").write_text("")
+    out = tmp_path / "a_file" / "diagnostics"
+    assert main(["diagnose", "--env", "point_reach", "--out", str(out), *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert err == f"sweeper diagnose: error: --out: cannot create {out}: Not a directory\n"
+
+
+def test_every_analysis_shows_its_progress(capsys, tmp_path) -> None:
+    """A long analysis says how far it is: each prints ``[diagnose] <what> i/n``."""
+    small = [arg for arg in SMALL if arg != "--quiet"]
+    assert main(["diagnose", "--env", "point_reach", "--encoders", "pixel", "--image-size", "32",
+                 "--out", str(tmp_path), *small]) == 0  # fmt: skip
+    err = capsys.readouterr().err
+    for label in ("random agent episodes 3/3", "gradient agreement states 3/3",
+                  "correlation pairs 5/5", "precision states 12/12", "topology grid states 25/25",
+                  "descent steps 18/18"):  # fmt: skip
+        assert f"[diagnose] {label}" in err, err
+    assert "[diagnose] point_reach: the variance analysis is for fetch_push; skipped" in err
 
 
 # ---- every analysis starts from a freshly reset env (issue 12) --------------------------

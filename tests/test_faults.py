@@ -26,8 +26,10 @@ from optuna.trial import TrialState
 
 from agent import train
 from agent.config import TrialResult
-from sweeper.launcher import launch, prepare
+from sweeper.launcher import launch, prepare, study_attrs
+from sweeper.plan import build_plan
 from sweeper.storage import StudyStore, curve_of, open_storage
+from sweeper.study import open_study
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake trains below
@@ -556,6 +558,32 @@ def one_trial_spec(tmp_path: Path, study: str, url: str | None = None, **executi
         checkpoints=str(tmp_path / "checkpoints"),
         execution=execution,
     )
+
+
+@pytest.mark.slow
+def test_a_corrupt_checkpoint_found_on_resume_is_said_in_the_output_and_the_record(
+    tmp_path, local_ray
+):
+    """The trial restarts from step 0 (its ledger exact), and says so where the user looks:
+    a line of the launch and the trial's ``notices`` attr (it was a warning in Ray's worker
+    log only)."""
+    spec, plan = prepare(str(one_trial_spec(tmp_path, "corrupt")))
+    attrs = study_attrs(spec, plan)
+    with open_study(spec.storage_url, spec.study, write=True, attrs=attrs) as store:
+        store.claim_driver()  # gives the study its uid, which names its checkpoints
+        (entry,) = build_plan(spec, study_uid=store.study_uid).entries
+        store.release_driver()
+    checkpoint = Path(entry.trial_config.checkpoint_dir) / "checkpoint.pt"
+    checkpoint.parent.mkdir(parents=True)
+    checkpoint.write_bytes(b"a checkpoint a disk fault left half-written")
+    stream = io.StringIO()
+    assert launch(spec, plan, stream=stream) == 0, stream.getvalue()
+    (trial,) = check_exact_budget(stored_trials(spec.storage_url, "corrupt"), plan.keys()).values()
+    (notice,) = trial.user_attrs["notices"]
+    assert notice.startswith(f"discarded its corrupt checkpoint {checkpoint}: ")
+    assert notice.endswith("; the trial restarts from step 0")
+    assert f"{entry.key}: {notice}" in stream.getvalue().splitlines()
+    assert trial.user_attrs["resumed_from"] is None
 
 
 def die(config, report=None):

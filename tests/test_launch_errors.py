@@ -1,18 +1,28 @@
-"""`sweeper launch` stopped at start-up: a database it cannot write, a SIGTERM while Ray
-starts. Each ends with one line of its own and a documented exit code, not a traceback."""
+"""`sweeper launch` stopped at start-up: a database it cannot write, a damaged one, a full
+disk or a lost server as the study is opened, a SIGTERM while Ray starts. Each ends with
+one line of its own and a documented exit code, not a traceback."""
 
 from __future__ import annotations
 
+import io
 import os
+import shutil
 import signal
+import sqlite3
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import pytest
-from conftest import CI_SPEC, ROOT, wait_until
+from conftest import CI_SPEC, DAMAGE, PUBLISHED, ROOT, damage, wait_until, write_ci_spec
+from pg_proxy import Proxy
+from sqlalchemy import event
+from sqlalchemy.engine import Engine
 
 from sweeper import cli, launcher
+from sweeper.launcher import prepare
 from sweeper.storage import open_storage
 
 LIGHT_HELP = """
@@ -59,10 +69,6 @@ def test_a_read_only_database_exits_2_before_ray_starts(tmp_path, monkeypatch, c
     if subprocess.run(["chattr", "+i", str(database)], capture_output=True).returncode != 0:
         pytest.skip("chattr +i does not work on this file system")
     try:
-
-        def no_ray(*args, **kwargs):
-            raise AssertionError("Ray was started")
-
         monkeypatch.setattr(launcher, "start_ray", no_ray)
         before = database.read_bytes()
         assert cli.main(["launch", str(CI_SPEC), "--storage", url]) == 2
@@ -73,6 +79,102 @@ def test_a_read_only_database_exits_2_before_ray_starts(tmp_path, monkeypatch, c
         assert database.read_bytes() == before
     finally:
         subprocess.run(["chattr", "-i", str(database)], check=True)
+
+
+def no_ray(*args, **kwargs):
+    raise AssertionError("Ray was started")
+
+
+@pytest.mark.parametrize("how", DAMAGE)
+def test_a_damaged_database_exits_2_before_ray_starts(tmp_path, monkeypatch, capsys, how):
+    """A study file truncated, overwritten or not a database at all: one line naming the
+    damage and the ways back, before Ray starts (it was 30-146 lines of tracebacks after)."""
+    database = tmp_path / "study.db"
+    shutil.copy(PUBLISHED / "study.db", database)
+    damage(database, how)
+    before = database.read_bytes()
+    monkeypatch.setattr(launcher, "start_ray", no_ray)
+    spec = ROOT / "studies" / "fetch_reach_cpu.yaml"
+    assert cli.main(["launch", str(spec), "--storage", f"sqlite:///{database}"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith(f"sweeper launch: storage: the database sqlite:///{database} is damaged")
+    assert "restore it from a backup or from the study's last published copy" in err
+    assert database.read_bytes() == before and sorted(tmp_path.iterdir()) == [database]
+
+
+class NoWorkers:
+    """A worker pool that never starts: the launch stops before it is used."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        pass
+
+    def shutdown(self) -> None:
+        pass
+
+
+def test_a_full_disk_as_the_database_is_created_exits_2_with_one_line(tmp_path, monkeypatch,
+                                                                       capsys):  # fmt: skip
+    """The database is created once Ray runs (a launch refused before writes nothing): a
+    full disk then is one line naming it and the fix, exit 2. Ray and its workers are
+    stood in for: the study is opened before any is used."""
+    monkeypatch.setattr(launcher, "start_ray", lambda *args, **kwargs: False)
+    monkeypatch.setattr(launcher, "pool_size", lambda *args: 1)
+    monkeypatch.setattr(launcher, "WorkerPool", NoWorkers)
+    monkeypatch.setattr(launcher, "start_estimate", lambda *args: None)
+
+    def full(connection, cursor, statement, *args):
+        if statement.lstrip().upper().startswith("CREATE"):
+            raise sqlite3.OperationalError("database or disk is full")
+
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    event.listen(Engine, "before_cursor_execute", full)
+    try:
+        assert cli.main(["launch", str(CI_SPEC), "--storage", url]) == 2
+    finally:
+        event.remove(Engine, "before_cursor_execute", full)
+    err = capsys.readouterr().err
+    assert err == (
+        f"sweeper launch: storage: cannot write {url}: its disk is full (database or disk is "
+        "full); free space, then launch again\n"
+    )
+
+
+def test_a_postgresql_server_gone_as_the_launch_starts_is_waited_for(tmp_path, monkeypatch,
+                                                                     pg_url):  # fmt: skip
+    """The server goes away once the launch's checks passed: it is waited for, for
+    execution.storage_grace, before Ray starts; past the grace, one line and exit 2 (it was
+    a traceback after Ray started)."""
+    proxy = Proxy(("127.0.0.1", 5432))
+    url = pg_url.replace("127.0.0.1:5432", f"127.0.0.1:{proxy.port}")
+    short, long = (
+        prepare(str(write_ci_spec(tmp_path / f"{grace}.yaml", storage=url,
+                                  execution={"storage_grace": grace})))  # checks the server
+        for grace in (2, 30)
+    )  # fmt: skip
+    monkeypatch.setattr(launcher, "start_ray", no_ray)
+    proxy.down()
+    stream = io.StringIO()
+    assert launcher.launch(*short, stream=stream) == 2
+    (line,) = stream.getvalue().splitlines()
+    assert line.startswith(
+        f"sweeper launch: storage: lost postgresql://postgres@127.0.0.1:{proxy.port}"
+    )
+    assert "for over 2 s (execution.storage_grace)" in line
+    assert line.endswith("bring the database back, then try again")
+
+    started = []
+
+    def ray_after_the_outage(*args, **kwargs):  # the launch goes on: stop it there
+        started.append(time.monotonic())
+        raise ConnectionError("no Ray in this test")
+
+    monkeypatch.setattr(launcher, "start_ray", ray_after_the_outage)
+    monkeypatch.setattr(launcher, "start_estimate", lambda *args: None)
+    threading.Timer(1.0, proxy.up).start()
+    start = time.monotonic()
+    assert launcher.launch(*long, stream=io.StringIO()) == 2  # Ray's stand-in refused
+    assert started and started[0] - start >= 1.0  # Ray started once the server was back
 
 
 def descendants(pid: int) -> list[str]:

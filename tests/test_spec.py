@@ -6,6 +6,8 @@ import copy
 import dataclasses
 import subprocess
 import sys
+import time
+import tracemalloc
 from pathlib import Path
 
 import pytest
@@ -380,6 +382,17 @@ def _drop(path: str):
     return change
 
 
+def aliases(levels: int, n: int = 9) -> str:
+    """YAML for ``sac.lr``: a flow list of anchors, each of ``n`` aliases of the one before,
+    ``levels`` deep (``n ** levels`` values once expanded); a billion at 9 levels."""
+    items = ["&a0 [0.001]"]
+    items += [f"&a{i} [{', '.join([f'*a{i - 1}'] * n)}]" for i in range(1, levels + 1)]
+    return f"sac:\n  lr: [{', '.join(items)}]\n"
+
+
+#: a list nested 10,000 deep, in a field
+DEEP = "sac:\n  lr: " + "[" * 10_000 + "0.001" + "]" * 10_000 + "\n"
+
 # (id, YAML text, the dotted path the message must name, words of what is allowed)
 BAD_SPECS = [
     ("missing study", spec_text(_drop("study")), "study", "required"),
@@ -539,6 +552,16 @@ BAD_SPECS = [
     ("not a mapping", "- study\n- t\n", "spec.yaml", "must be a mapping"),
     ("empty file", "", "spec.yaml", "must be a mapping"),
     ("binary file", None, "spec.yaml", "cannot read"),
+    # values without bound, and names that would write to the terminal (issue 35)
+    ("aliases expand", spec_text() + aliases(9), "line", "more than 100,000 values"),
+    ("nested deep", spec_text() + DEEP, "line", "nested more than 50 deep"),
+    ("an alias in itself", spec_text() + "sac:\n  lr: &a [*a]\n", "line", "contains itself"),
+    (
+        "control characters in a name",
+        spec_text(_set("methods", {"\x1b[2J\x1b[31mpixel": {}})),
+        "methods.\\x1b[2J\\x1b[31mpixel",
+        "unknown method",
+    ),
 ]
 
 
@@ -561,6 +584,43 @@ def test_bad_spec_raises_spec_error_naming_the_field(tmp_path, text, path, allow
     assert path in message and allowed in message, message
     if info.value.errors:  # a validation error: the exact dotted path is listed
         assert path in [p for p, _ in info.value.errors], info.value.errors
+
+
+@pytest.mark.parametrize("text", [aliases(9), DEEP], ids=["aliases", "deep"])
+def test_a_spec_that_expands_or_nests_without_bound_is_refused_at_once(tmp_path, text):
+    """Nine levels of nine aliases (a billion values) took minutes and GBs; a list nested
+    10,000 deep was a RecursionError of 3,000 lines. Now: one short line, in milliseconds
+    and a few MB."""
+    path = write(tmp_path, spec_text() + text)
+    tracemalloc.start()
+    start = time.perf_counter()
+    try:
+        with pytest.raises(SpecError) as info:
+            load_spec(path)
+        seconds = time.perf_counter() - start
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert seconds < 2 and peak < 20 * 2**20, (seconds, peak)
+    assert len(str(info.value)) < len(str(path)) + 200 and "\n" not in str(info.value)
+
+
+def test_an_error_shows_an_excerpt_of_a_value_and_a_name_escaped(tmp_path):
+    """Three levels of aliases (729 values) are allowed, but the error about them shows a
+    few of them, not all; a control character of a name is shown escaped."""
+    with pytest.raises(SpecError) as info:
+        load_spec(write(tmp_path, spec_text() + aliases(3)))
+    message = str(info.value)
+    assert "sac.lr[3]: Input should be a valid number, got [[[...]" in message, message
+    assert len(message) < 600 and message.count("0.001") < 10
+    many = spec_text(_set("sac.lr", ["fast"] * 10_000))  # 10,000 errors: five are listed
+    with pytest.raises(SpecError) as info:
+        load_spec(write(tmp_path, many))
+    assert str(info.value).endswith("; and 9995 more errors") and len(info.value.errors) == 10_000
+    with pytest.raises(SpecError) as info:
+        load_spec(write(tmp_path, spec_text(_set("methods", {"\x1b]0;owned\x07pixel": {}}))))
+    assert not any(c in str(info.value) for c in "\x1b\x07"), repr(str(info.value))
+    assert "methods.\\x1b]0;owned\\x07pixel" in str(info.value)
 
 
 def test_unreadable_files(tmp_path):

@@ -1,26 +1,30 @@
-"""sweeper.study and the storage errors of issue 15: read-only readers, a missing or empty
-database, a database outage shorter than the grace, a full disk."""
+"""sweeper.study and the storage errors of issues 15 and 35: read-only readers, a missing,
+empty or damaged database, a database outage shorter than the grace (while the study is
+opened too), a full disk."""
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import shutil
 import sqlite3
 import subprocess
+import threading
 import time
 from pathlib import Path
 
 import optuna
 import pytest
-from conftest import CI_SPEC, PG_ADMIN
+from conftest import CI_SPEC, DAMAGE, PG_ADMIN, PUBLISHED, ROOT, damage
 from pg_proxy import Proxy
 from sqlalchemy import event
-from synthetic_study import write_synthetic_study
+from sqlalchemy.engine import Engine
+from synthetic_study import Special, write_synthetic_study
 
-from sweeper import aggregate, dashboard, status
+from sweeper import aggregate, cli, dashboard, status
 from sweeper.plan import build_plan
 from sweeper.spec import load_spec
-from sweeper.storage import STORAGE_GRACE, StorageError, open_storage
+from sweeper.storage import STORAGE_GRACE, StorageError, check_intact, open_storage
 from sweeper.study import NoStudy, open_study, read_rows
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -240,3 +244,102 @@ def test_a_full_disk_under_sqlite_is_one_line_and_not_retried(tmp_path):
         assert store.trials()[trial.number].state.name == "RUNNING"  # nothing half-written
     message = str(info.value)
     assert "\n" not in message and "its disk is full" in message and "free space" in message
+
+
+# ---- issue 35: a fault while the study is opened; a damaged file ------------------------
+@pytest.mark.parametrize("how", DAMAGE)
+def test_a_damaged_study_is_one_line_saying_how_to_get_it_back(tmp_path, capsys, how):
+    """status, aggregate and publish of a damaged copy of a finished study: exit 2 and one
+    line naming the damage and the ways back; nothing is written, and an earlier published
+    copy is left as it was. (Two pages overwritten used to pass unseen: status and
+    aggregate exited 0, publish shipped the damaged file.)"""
+    runs, published = tmp_path / "runs", tmp_path / "published"
+    for folder in (runs, published):
+        folder.mkdir()
+        shutil.copy(PUBLISHED / "study.db", folder / "study.db")  # published: the last copy
+    database = runs / "study.db"
+    damage(database, how)
+    before = snapshot(runs), snapshot(published)
+    spec = [str(ROOT / "studies" / "fetch_reach_cpu.yaml"), "--storage", f"sqlite:///{database}"]
+    for command, *options in (["status"], ["aggregate", "--out", str(tmp_path / "aggregate")],
+                              ["publish", "--out", str(published)]):  # fmt: skip
+        assert cli.main([command, *spec, *options]) == 2
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1, err
+        assert err.startswith(f"sweeper {command}: storage: the database sqlite:///{database} is "
+                              "damaged (")  # fmt: skip
+        assert "restore it from a backup or from the study's last published copy" in err
+    assert (snapshot(runs), snapshot(published)) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["published", "runs"]
+
+
+def test_the_check_for_damage_is_cheap():
+    """``quick_check`` of a finished study of MBs takes milliseconds (integrity_check,
+    which publish runs on its copy, ~10 ms)."""
+    start = time.perf_counter()
+    check_intact(f"sqlite:///{PUBLISHED / 'study.db'}")
+    assert time.perf_counter() - start < 1
+
+
+def test_publishing_an_unfinished_study_says_the_copy_is_partial(tmp_path, capsys):
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    storage = open_storage(url)
+    study = write_synthetic_study(storage, "ci", methods=("pixel", "linear"), configs=1,
+                                  seeds=(0,), special=Special(running="linear/0/0"))  # fmt: skip
+    plan = build_plan(spec_at(url))
+    study.set_user_attr("plan_hash", plan.hash)
+    study.set_user_attr("plan", plan.keys())
+    storage.engine.dispose()
+    out = tmp_path / "published"
+    assert cli.main(["publish", str(CI_SPEC), "--storage", url, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[-1] == (
+        "the study is unfinished (1 of 2 trials done): the published copy is partial; "
+        "publish again once it ends"
+    )
+    assert (out / "study.db").is_file() and not (out / "study.db.partial").exists()
+
+
+def test_an_outage_while_the_study_is_opened_is_retried_for_the_grace(pg_url):
+    """A PostgreSQL server gone as a launch opens its study is waited for, as one gone
+    later is: the study opens once it is back; gone for longer than the grace, one line."""
+    proxy = Proxy(("127.0.0.1", 5432))
+    url = pg_url.replace("127.0.0.1:5432", f"127.0.0.1:{proxy.port}")
+    attrs = {"plan_hash": build_plan(spec_at(url)).hash}
+    proxy.down()
+    threading.Timer(1.0, proxy.up).start()
+    start = time.monotonic()
+    with open_study(url, "ci", write=True, attrs=attrs, grace=30) as store:
+        assert store.attrs["plan_hash"] == attrs["plan_hash"]
+    assert time.monotonic() - start >= 1.0  # it waited for the server
+    proxy.down()  # for good
+    for write in (True, False):  # the launch's writer, and its read before Ray starts
+        start = time.monotonic()
+        with (
+            pytest.raises(StorageError) as info,
+            open_study(url, "ci", write=write, attrs=attrs, grace=2),
+        ):
+            pass
+        assert time.monotonic() - start < STORAGE_GRACE / 2  # its grace, not the default
+        message = str(info.value)
+        assert "\n" not in message and message.startswith("storage: lost postgresql")
+        assert "for over 2 s (execution.storage_grace)" in message
+
+
+def test_a_full_disk_while_the_database_is_created_is_one_line(tmp_path):
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+
+    def full(connection, cursor, statement, *args):
+        if statement.lstrip().upper().startswith("CREATE"):
+            raise sqlite3.OperationalError("database or disk is full")
+
+    event.listen(Engine, "before_cursor_execute", full)
+    try:
+        with pytest.raises(StorageError) as info, open_study(url, "ci", write=True, attrs={}):
+            pass
+    finally:
+        event.remove(Engine, "before_cursor_execute", full)
+    assert str(info.value) == (
+        f"storage: cannot write {url}: its disk is full (database or disk is full); free "
+        "space, then launch again"
+    )

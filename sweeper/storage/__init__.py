@@ -5,8 +5,8 @@ Conventions: docs/architecture.md, "Storage conventions". One file per job:
 - ``urls``: database URLs, their checks, and the one place that says how a URL is
   connected to, for the writer and readers alike (``engine_arguments``, ``open_engine``:
   SQLite in WAL mode with a long busy timeout; readers' connections read-only);
-- ``errors``: ``StorageError``, ``StudyBusy``, which database errors are outages, and the
-  one-line message of each;
+- ``errors``: ``StorageError``, ``StudyBusy``, which database errors are outages and which
+  say the file is damaged, and the one-line message of each;
 - ``provenance``: the code's revision and the package versions a study records;
 - ``ledger``: the ledger rules, pure functions over (key, state, outcome): a key's current
   trial, its ledger column, the per-method counts;
@@ -22,8 +22,10 @@ from sweeper.storage.errors import (
     StorageError,
     StudyBusy,
     check_plan,
+    damaged_error,
     database_cause,
     database_error,
+    is_damaged,
     is_database_error,
     is_outage,
     reason_of,
@@ -47,9 +49,11 @@ from sweeper.storage.provenance import (
 )
 from sweeper.storage.urls import (
     SQLITE_TIMEOUT,
+    check_intact,
     check_storage,
     check_writable,
     connect_read_only,
+    damage,
     engine_arguments,
     open_engine,
     open_storage,
@@ -72,6 +76,7 @@ from sweeper.storage.writer import (
     name_objective,
     process_start,
     retried,
+    retry_outages,
 )
 
 __all__ = [
@@ -90,6 +95,7 @@ __all__ = [
     "StudyBusy",
     "StudyStore",
     "busy_message",
+    "check_intact",
     "check_plan",
     "check_storage",
     "check_writable",
@@ -98,10 +104,13 @@ __all__ = [
     "current_numbers",
     "current_trials",
     "curve_of",
+    "damage",
+    "damaged_error",
     "database_cause",
     "database_error",
     "driver_alive",
     "engine_arguments",
+    "is_damaged",
     "is_database_error",
     "is_outage",
     "json_safe",
@@ -117,6 +126,7 @@ __all__ = [
     "redact",
     "resolve_url",
     "retried",
+    "retry_outages",
     "sqlite_path",
     "tally",
     "write_error",

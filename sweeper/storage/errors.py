@@ -2,10 +2,10 @@
 
 ``StorageError`` (an unusable URL, a study that does not match its spec, a write the
 database refused) and ``StudyBusy`` (another live driver); which exceptions the database
-raised (``is_database_error``) and which of them are an outage a retry may get past
-(``is_outage``); the one line each says, the database driver's own reason first
-(``reason_of``), with the URL's password hidden (``redact``). Readers and the writer raise
-the same errors.
+raised (``is_database_error``), which of them are an outage a retry may get past
+(``is_outage``) and which say the SQLite file is damaged (``is_damaged``); the one line
+each says, the database driver's own reason first (``reason_of``), with the URL's password
+hidden (``redact``). Readers and the writer raise the same errors.
 """
 
 from __future__ import annotations
@@ -86,26 +86,55 @@ def is_outage(error: BaseException) -> bool:
     return False
 
 
-def write_error(url: str, error: BaseException, grace: float) -> StorageError:
-    """The one-line StorageError of a write the database refused, naming the cause and the
-    fix; the trials in flight stay RUNNING and the next launch resumes them."""
+#: SQLite's result codes of a damaged file: SQLITE_CORRUPT, SQLITE_NOTADB
+DAMAGED_CODES = (11, 26)
+#: what a write error's message tells the user to do once the cause is fixed
+RESUME = "launch again to resume the trials in flight"
+
+
+def is_damaged(error: BaseException) -> bool:
+    """Whether ``error`` says the SQLite file is damaged (malformed, or not a database):
+    no retry gets past that."""
+    cause = database_cause(error)
+    orig = getattr(cause, "orig", None) or cause
+    if not isinstance(orig, sqlite3.DatabaseError):
+        return False
+    return (getattr(orig, "sqlite_errorcode", 0) & 0xFF) in DAMAGED_CODES  # the primary code
+
+
+def damaged_error(url: str, detail: str) -> StorageError:
+    """The one-line StorageError of a damaged SQLite database and the ways back."""
+    detail = " ".join(detail.split())
+    detail = detail if len(detail) <= 120 else detail[:117] + "..."
+    return StorageError(
+        f"storage: the database {redact(url)} is damaged ({detail}): restore it from a backup "
+        "or from the study's last published copy (`sweeper publish` writes study.db), or give "
+        "another --storage"
+    )
+
+
+def write_error(url: str, error: BaseException, grace: float, then: str = RESUME) -> StorageError:
+    """The one-line StorageError of a write (or an open) the database refused, naming the
+    cause and the fix, ``then`` what to do after it; the trials in flight stay RUNNING and
+    the next launch resumes them."""
     reason = reason_of(error)
     where = redact(url)
-    resume = "launch again to resume the trials in flight"
+    if is_damaged(error):
+        return damaged_error(url, reason)
     state = getattr(getattr(database_cause(error), "orig", None), "sqlstate", None)
     if "disk is full" in reason or state == "53100":  # SQLite's and PostgreSQL's full disk
         return StorageError(
-            f"storage: cannot write {where}: its disk is full ({reason}); free space, then {resume}"
+            f"storage: cannot write {where}: its disk is full ({reason}); free space, then {then}"
         )
     if "readonly" in reason or "read-only" in reason:
         return StorageError(
             f"storage: cannot write {where}: it is read-only ({reason}); make it writable or "
-            f"give another --storage, then {resume}"
+            f"give another --storage, then {then}"
         )
     if is_outage(error):
         return StorageError(
             f"storage: lost {where} for over {grace:g} s (execution.storage_grace): {reason}; "
-            f"bring the database back, then {resume}"
+            f"bring the database back, then {then}"
         )
     return StorageError(f"storage: cannot use {where}: {reason}")
 

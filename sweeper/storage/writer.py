@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from agent.config import Outcome
 from sweeper.storage.errors import (
+    RESUME,
     StorageError,
     StudyBusy,
     check_plan,
@@ -85,27 +86,35 @@ def name_objective(study) -> None:
 
 
 _Method = TypeVar("_Method", bound=Callable[..., Any])
+_T = TypeVar("_T")
+
+
+def retry_outages(call: Callable[[], _T], url: str, grace: float, then: str = RESUME) -> _T:
+    """``call()``, run again with growing pauses while the database ``url`` is out
+    (``is_outage``) and ``grace`` s have not run out; then, or at once for any other
+    database error, ``write_error``'s one-line StorageError (``then``: what to do once the
+    cause is fixed). Opening a study and every ``StudyStore`` write go through here."""
+    deadline = time.monotonic() + grace
+    delay = 0.25
+    while True:
+        try:
+            return call()
+        except Exception as e:
+            if not is_database_error(e):
+                raise
+            if not is_outage(e) or time.monotonic() + delay > deadline:
+                raise write_error(url, e, grace, then) from None
+        time.sleep(delay)
+        delay = min(2 * delay, RETRY_MAX_DELAY)
 
 
 def retried(method: _Method) -> _Method:
-    """Run a ``StudyStore`` method again, with growing pauses, while the database is out
-    (``is_outage``) and the store's ``grace`` has not run out; then, or at once for any
-    other database error, raise ``write_error``'s one-line StorageError."""
+    """A ``StudyStore`` method retried through an outage for the store's ``grace``
+    (``retry_outages``)."""
 
     @functools.wraps(method)
     def again(self: StudyStore, *args: Any, **kwargs: Any) -> Any:
-        deadline = time.monotonic() + self.grace
-        delay = 0.25
-        while True:
-            try:
-                return method(self, *args, **kwargs)
-            except Exception as e:
-                if not is_database_error(e):
-                    raise
-                if not is_outage(e) or time.monotonic() + delay > deadline:
-                    raise write_error(self.storage.url, e, self.grace) from None
-            time.sleep(delay)
-            delay = min(2 * delay, RETRY_MAX_DELAY)
+        return retry_outages(lambda: method(self, *args, **kwargs), self.storage.url, self.grace)
 
     return again  # type: ignore[return-value]
 
