@@ -83,6 +83,21 @@ def test_status_and_aggregate_read_a_finished_study_on_read_only_media(tmp_path,
     assert (out / "report.md").is_file() and (out / "auc_table.csv").is_file()
 
 
+def test_status_and_plan_list_methods_in_the_spec_order(tmp_path, capsys):
+    """The order its author wrote the methods in (the CI spec: pixel, then linear), not the
+    plan's by name: ``sweeper status`` listed them sorted, ``sweeper plan`` as written."""
+    from sweeper.show_plan import plan_lines
+
+    spec = spec_at(f"sqlite:///{tmp_path / 'none.db'}")
+    written = list(spec.methods)
+    assert written == ["pixel", "linear"] and sorted(written) != written
+    assert status.run(spec, argparse.Namespace()) == 0
+    table = capsys.readouterr().out.splitlines()[2:]  # after the study line and the header
+    assert [line.split()[0] for line in table[:2]] == written
+    lines = plan_lines(spec, build_plan(spec), set(), dict.fromkeys(written, 60.0))
+    assert [line.split()[0] for line in lines[2:4]] == written  # after the summary, the header
+
+
 def test_a_reader_cannot_write(tmp_path):
     """Without chattr: the read-only connection itself (SQLite ``mode=ro``) refuses."""
     url = finished_study(tmp_path)

@@ -77,6 +77,7 @@ from sweeper.aggregate.tables import (
 from sweeper.artifacts import artifact_location
 from sweeper.storage import StorageError, is_database_error, reason_of
 from sweeper.study import open_study
+from sweeper.text import plural
 
 if TYPE_CHECKING:
     from sweeper.spec import StudySpec
@@ -228,7 +229,8 @@ def aggregate(
     start = time.perf_counter()
     frame = load_study_frame(storage_url, study_name)
     say(
-        f"read {frame['trial'].nunique()} trials, {len(frame)} rows of study {study_name!r} "
+        f"read {plural(frame['trial'].nunique(), 'trial')}, {plural(len(frame), 'row')} of "
+        f"study {study_name!r} "
         f"in {time.perf_counter() - start:.1f} s"
     )
     search = stage_frame(frame, "search")  # the confirmation stage is reported apart

@@ -9,8 +9,9 @@ from typing import Any
 
 import pandas as pd
 
-from sweeper.aggregate.frame import random_success, scored, study_info, trial_rows
+from sweeper.aggregate.frame import methods_of, random_success, scored, study_info, trial_rows
 from sweeper.aggregate.tables import CONFIDENCE, RESAMPLES, Tables
+from sweeper.text import plural
 
 
 def _fmt(value: Any, digits: int = 3) -> str:
@@ -142,7 +143,7 @@ def ranking_sentence(
         if r is None or not r.pairs or math.isnan(r.probability):
             claims.append(f"{better.method} and {worse.method} share no done pair")
             continue
-        pairs = f"{r.pairs} paired trial{'s' if r.pairs > 1 else ''}"
+        pairs = plural(r.pairs, "paired trial")
         evidence = f"{_fmt(r.probability, 2)} [{_fmt(r.low, 2)}, {_fmt(r.high, 2)}] of {pairs}"
         if r.pairs < MIN_RELIABLE:
             evidence += f", fewer than {MIN_RELIABLE}"
@@ -218,7 +219,10 @@ def fits_markdown(frame: pd.DataFrame) -> str:
         "| reward scale (median) |",
         "|---|---:|---|---:|---:|---:|",
     ]
-    for method, rows in fits.groupby("method", sort=False):
+    for method in methods_of(frame):
+        rows = fits[fits["method"] == method]
+        if rows.empty:
+            continue
         active = ", ".join(
             f"{a}/{d}" for a, d in zip(rows["fit_active_dims"], rows["fit_latent_dim"], strict=True)
         )
@@ -247,8 +251,9 @@ def report_markdown(frame: pd.DataFrame, tables: Tables, driver_alive: bool) -> 
     if (table["running"] + table["left"]).sum():
         status = "a driver is running it" if driver_alive else "no driver is running it"
         lines += [
-            f"**Partial study** ({status}): {int(table['running'].sum())} trials running and "
-            f"{int(table['left'].sum())} left; the statistics cover done trials only.",
+            f"**Partial study** ({status}): {plural(int(table['running'].sum()), 'trial')} "
+            f"running and {int(table['left'].sum())} left; the statistics cover done trials "
+            "only.",
             "",
         ]
     warning = few_trials_warning(table)
@@ -312,9 +317,10 @@ def confirm_markdown(confirm: pd.DataFrame, seeds: int) -> str:
         "## Confirmation on fresh seeds (against the winner's curse)",
         "",
         "The best of many configurations is partly the luckiest, so its search AUC overstates "
-        f"it. `sweeper confirm` re-ran each method's {int(confirm['rank'].max())} best "
-        f"configurations (by search AUC, the mean over their search seeds) on {seeds} fresh "
-        "seeds the search never used; these trials are left out of every statistic above.",
+        f"it. `sweeper confirm` re-ran each method's "
+        f"{plural(int(confirm['rank'].max()), 'best configuration')} (by search AUC, the mean "
+        f"over their search seeds) on {plural(seeds, 'fresh seed')} the search never used; "
+        "these trials are left out of every statistic above.",
         "",
         "| method | best configuration found | its search AUC | how good it is on new seeds: "
         f"confirm AUC [{CONFIDENCE:.0%} CI] (seeds done) | drop |",
