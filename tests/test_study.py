@@ -75,7 +75,7 @@ def test_status_and_aggregate_read_a_finished_study_on_read_only_media(tmp_path,
         rows = {line.split()[0]: line.split()[1:] for line in printed.splitlines()[1:]}
         assert rows["pixel"][:2] == ["1", "1"] and rows["linear"][0] == "1"  # planned, done
         assert "driver: not running" in printed
-        args = argparse.Namespace(out=str(out), no_dashboard=False)
+        args = argparse.Namespace(spec=[CI_SPEC], storage=url, out=str(out), no_dashboard=False)
         assert aggregate.run([spec], args) == 0
         err = capsys.readouterr().err
         assert "warning: the comparison was not saved into the study" in err
@@ -151,7 +151,8 @@ def test_readers_use_read_only_transactions_on_postgresql(pg_url, tmp_path, caps
         spec = spec_at(pg_url)
         assert status.run(spec, argparse.Namespace()) == 0
         assert "driver: not running" in capsys.readouterr().out
-        args = argparse.Namespace(out=str(tmp_path / "out"), no_dashboard=True)
+        out = str(tmp_path / "out")
+        args = argparse.Namespace(spec=[CI_SPEC], storage=pg_url, out=out, no_dashboard=True)
         assert aggregate.run([spec], args) == 0
     finally:
         event.remove(Pool, "connect", read_only)

@@ -121,6 +121,48 @@ def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame, pairs: bool =
     return "\n".join(lines)
 
 
+def terminal_table(tables: Tables) -> list[str]:
+    """The per-method table ``sweeper aggregate`` prints, then ``verdict``'s line: per
+    method (in the spec's order) the IQM AUC and the IQM final success (the last point of
+    the sample-efficiency curve, ``tables.efficiency``), each with its interval, and its
+    done and planned trials."""
+    efficiency = tables.efficiency.sort_values("step", kind="stable")
+    final = efficiency.groupby("method").tail(1).set_index("method")
+    ci = f"[{CONFIDENCE:.0%} CI]"
+    rows = [("method", f"IQM AUC {ci}", f"IQM final success {ci}", "n (done/planned)")]
+    for row in tables.table.to_dict("records"):
+        auc = _interval(row, "iqm") if row["n"] else "–"
+        success = "–"
+        if row["method"] in final.index:
+            point = final.loc[row["method"]]
+            success = f"{_fmt(point['iqm'])} [{_fmt(point['low'])}, {_fmt(point['high'])}]"
+        rows.append((row["method"], auc, success, f"{row['done']}/{row['planned']}"))
+    widths = [max(len(row[c]) for row in rows) for c in range(len(rows[0]))]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip()
+             for row in rows]  # fmt: skip
+    return [*lines, verdict(tables.table)]
+
+
+def verdict(table: pd.DataFrame) -> str:
+    """Which method has the highest IQM AUC, and whether its interval separates it from the
+    next method's (lies above it) or not, in one line."""
+    done = table[table["n"] > 0].sort_values("iqm", ascending=False, kind="stable")
+    if done.empty:
+        return "No method has a done trial yet."
+    best = done.iloc[0].to_dict()
+    text = f"Highest IQM AUC: {best['method']}, {_interval(best, 'iqm')}"
+    if len(done) == 1:
+        return f"{text}; no other method has a done trial."
+    following = done.iloc[1].to_dict()
+    other = f"that of the next, {following['method']}, {_interval(following, 'iqm')}"
+    if best["iqm_low"] > following["iqm_high"]:
+        return f"{text}; its {CONFIDENCE:.0%} interval lies above {other}."
+    return (
+        f"{text}; its {CONFIDENCE:.0%} interval overlaps {other}: this study does not "
+        "separate the two."
+    )
+
+
 def ranking_sentence(
     table: pd.DataFrame, improvement: pd.DataFrame, random: float | None = None
 ) -> str:
