@@ -76,8 +76,9 @@ def rewrite(
     def value(row: Any) -> Any:
         return parsed[row.distribution_json].to_external_repr(row.param_value)
 
-    def constant(row: Any) -> bool:
-        return is_fixed(getattr(parsed[row.distribution_json], "choices", ()))
+    def constant(row: Any) -> bool:  # a categorical of one choice (sweeper writes no other)
+        choices = getattr(parsed[row.distribution_json], "choices", None)
+        return choices is not None and is_fixed(choices)
 
     old = [t for t in keyed if all(r.param_name != METHOD_PARAM for r in rows.get(t, []))]
     after = dict(fixed)
