@@ -14,6 +14,7 @@ import pandas as pd
 from encoders import diagnostics as dx
 from encoders.diagnostics import plots
 from sweeper.diagnose_settings import ARM_OBJECT_ENVS, Settings, grid_dims
+from sweeper.text import plural
 
 
 @dataclass(frozen=True)
@@ -164,8 +165,9 @@ def _descent(settings: Settings, target: Target) -> pd.DataFrame:
     plots.plot_descent(
         episodes,
         target.out / "descent.png",
-        f"{target.name}: greedy descent on each reward ({settings.descent_candidates} "
-        f"candidates a step, {settings.descent_horizon} steps)",
+        f"{target.name}: greedy descent on each reward "
+        f"({plural(settings.descent_candidates, 'candidate')} a step, "
+        f"{plural(settings.descent_horizon, 'step')})",
     )
     return summary.assign(analysis="descent")
 

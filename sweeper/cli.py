@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 from sweeper.spec import SpecError, StudySpec, load_spec
+from sweeper.text import HelpFormatter
 
 
 class Specs(Enum):
@@ -84,10 +85,13 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sweeper",
         description="Fair sweeps comparing reward encoders for goal-conditioned RL from images.",
+        formatter_class=HelpFormatter,
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, entry in COMMANDS.items():
-        sub = subparsers.add_parser(name, help=entry.help, description=entry.help)
+        sub = subparsers.add_parser(
+            name, help=entry.help, description=entry.help, formatter_class=HelpFormatter
+        )
         if name == command:
             _add_spec_arguments(sub, entry.specs)
             importlib.import_module(entry.module).add_arguments(sub)

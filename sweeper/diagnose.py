@@ -35,6 +35,7 @@ from sweeper.diagnose_settings import (
     split,
 )
 from sweeper.frames import env_views
+from sweeper.text import HelpFormatter
 
 ANALYSES = (
     "exploration",
@@ -53,7 +54,7 @@ DEFAULTS = Settings()
 MAX_THREADS = 256
 
 
-class _DefaultsHelp(argparse.ArgumentDefaultsHelpFormatter):
+class _DefaultsHelp(HelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
     """Shows a default only where there is one to show (not for a required option, a flag,
     an empty list or None, whose help says what happens)."""
 
@@ -81,8 +82,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ENCODER.KEY=VALUE",
         help="an encoder option, e.g. cvae.latent_dim=8 or vgg.weights_path=vgg16.pth (repeatable)",
     )
-    parser.add_argument(
-        "--analyses", default=",".join(ANALYSES), help=f"subset of {', '.join(ANALYSES)}"
+    parser.add_argument(  # the default has spaces to wrap at in the help; ``split`` strips them
+        "--analyses", default=", ".join(ANALYSES), help="the analyses to run, comma-separated"
     )
     parser.add_argument(
         "--out", default="runs/diagnostics/{env}", help="output directory; {env} is the env name"

@@ -49,10 +49,11 @@ from sweeper.execution import (
     WorkersCannotStart,
 )
 from sweeper.halving import HALVING_ATTR, Curves, Ladder
-from sweeper.plan import PlanEntry, run_order
+from sweeper.plan import PlanEntry, in_spec_order, run_order
 from sweeper.progress import LaunchProgress
 from sweeper.spec import StudySpec
 from sweeper.storage import Heartbeat, KeyStatus, StudyStore, json_safe
+from sweeper.text import plural
 
 #: exit code of a launch stopped by Ctrl-C or SIGTERM
 EXIT_INTERRUPTED = 130
@@ -102,7 +103,7 @@ class Driver:
     ) -> None:
         """``ladder`` (a plan with successive halving): its decisions so far, and
         ``curves`` those of the study's done keys."""
-        self.execution = spec.execution
+        self.execution, self.methods = spec.execution, list(spec.methods)
         self.store, self.pool, self.progress = store, pool, progress
         self.beat, self.stream = beat, stream
         self.artifacts = ArtifactStore(artifact_location(spec))
@@ -141,7 +142,7 @@ class Driver:
         self.leave_paused()
         if self.failed:
             print(
-                f"sweeper launch: {self.failed} trial(s) failed (see `sweeper status`); "
+                f"sweeper launch: {plural(self.failed, 'trial')} failed (see `sweeper status`); "
                 "launching again re-runs them",
                 file=self.stream,
             )
@@ -253,10 +254,11 @@ class Driver:
         if new:
             self.store.set_study_attr(HALVING_ATTR, self.ladder.as_attr())
             for stop, chosen in sorted(new.items()):
-                for method, configs in sorted(chosen.items()):
+                for method in in_spec_order(chosen, self.methods):
+                    configs = chosen[method]
                     self.progress.note(
-                        f"halving: {method} goes on from step {stop:,} with configuration(s) "
-                        f"{', '.join(map(str, configs))}"
+                        f"halving: {method} goes on from step {stop:,} with "
+                        f"{plural(len(configs), 'configuration')} ({', '.join(map(str, configs))})"
                     )
         for key in sorted(self.paused):
             self.after_rung(self.paused[key])
@@ -298,8 +300,8 @@ class Driver:
             )
         if self.paused:
             print(
-                f"sweeper launch: {len(self.paused)} trial(s) wait at a rung for their "
-                "method's failed trials; launching again runs those, then decides",
+                f"sweeper launch: {plural(len(self.paused), 'trial')} left waiting at a rung for "
+                "their method's failed trials; launching again runs those, then decides",
                 file=self.stream,
             )
 
@@ -314,7 +316,8 @@ class Driver:
             self.progress.set_state(job.key, KeyStatus.LEFT)
             self.retry.append(job)
         else:
-            self.give_up(job, {"error": f"worker died {job.attempts} times; last: {event.error}"})
+            died = f"worker died {plural(job.attempts, 'time')}; last: {event.error}"
+            self.give_up(job, {"error": died})
 
     def give_up(self, job: Job, attrs: dict[str, Any]) -> None:
         """Record the trial FAIL; the next launch re-runs its key."""
@@ -334,7 +337,7 @@ class Driver:
                 self.store.interrupt(job.trial_id, "stopped by the user", None)
         self.progress.close()
         print(
-            f"\nsweeper launch: stopped; {len(stopped)} trial(s) in flight were interrupted; "
+            f"\nsweeper launch: stopped; {plural(len(stopped), 'trial')} in flight interrupted; "
             "the next launch:",
             file=self.stream,
         )

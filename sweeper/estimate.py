@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 from sweeper.halving import Schedule
 from sweeper.plan import PlanEntry, run_order
 from sweeper.storage import current_trials
+from sweeper.text import plural
 
 if TYPE_CHECKING:
     from optuna.trial import FrozenTrial
@@ -199,9 +200,10 @@ def summary_lines(
     workers = local_workers(execution.max_concurrent, threads_per_trial)
     wall = makespan([estimates[e.key].seconds for e in left], workers)
     lines = [
-        f"left: {len(left)} of {len(entries)} trials, {format_duration(trial_seconds)} of "
-        f"trial time; about {format_duration(wall)} at {workers} trial(s) at once on this "
-        f"machine ({os.cpu_count()} cores, {threads_per_trial} thread(s) a trial)"
+        f"left: {len(left)} of {plural(len(entries), 'trial')}, "
+        f"{format_duration(trial_seconds)} of trial time; about {format_duration(wall)} at "
+        f"{plural(workers, 'trial')} at once on this machine "
+        f"({plural(os.cpu_count() or 1, 'core')}, {plural(threads_per_trial, 'thread')} a trial)"
     ]
     sources = {e.source for e in estimates.values()}
     if "calibrated" in sources and calibration_seconds is not None:

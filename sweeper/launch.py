@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 
 from sweeper.spec import SpecError, StudySpec, check_files, positive_int
 from sweeper.spec_errors import suggest
+from sweeper.text import plural
 
 if TYPE_CHECKING:
     from sweeper.plan import Plan
@@ -94,13 +95,14 @@ def skip_lines(spec: StudySpec, plan: Plan, skip: frozenset[str]) -> list[str]:
         if item.method in skip
     ]
     runs = [m for m in spec.methods if m not in skip]
+    left = [m for m in spec.methods if m in skip]
     per_method = spec.trials_per_method_total
     skipped = sum(e.method in skip for e in plan.entries)
     lines.append(
         f"sweeper launch: this launch runs {len(runs)} of {len(spec.methods)} methods "
-        f"({', '.join(runs)}), {per_method} trials each as planned: "
+        f"({', '.join(runs)}), {plural(per_method, 'trial')} each as planned: "
         f"{len(plan.entries) - skipped} of the plan's {len(plan.entries)} trials; "
-        f"the {skipped} of {', '.join(sorted(skip))} stay left in the study (`sweeper status` "
-        "counts them) for a launch with the files"
+        f"the {skipped} of {', '.join(left)} stay left in the "
+        "study (`sweeper status` counts them) for a launch with the files"
     )
     return lines

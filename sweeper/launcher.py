@@ -36,7 +36,7 @@ from sweeper import random_agent
 from sweeper.estimate import InBackground, TrialEstimate, finished, summary_lines
 from sweeper.execution import WorkerPool, start_ray, stop_ray
 from sweeper.halving import HALVING_ATTR, Curves, Ladder
-from sweeper.plan import Plan, build_plan
+from sweeper.plan import Plan, build_plan, in_spec_order
 from sweeper.progress import LaunchProgress
 from sweeper.resources import cannot_reach_message, local_cpus, pool_size
 from sweeper.spec import StudySpec, load_spec
@@ -56,6 +56,7 @@ from sweeper.storage import (
     redact,
 )
 from sweeper.study import NoStudy, open_study
+from sweeper.text import plural
 
 #: what a driver runs once it holds the study: its plan, bound to the study
 Stage = Callable[[StudySpec, StudyStore], Plan]
@@ -167,7 +168,7 @@ def launch(
                 done = sum(c.done for c in ledger(plan.keys(), study[0], False).values())
             print(
                 f"study {spec.study!r} in {redact(spec.storage_url)}: {done} of {total} "
-                f"trials done, 0 to run{skipped_note(plan, skip)}",
+                f"trials done, 0 to run{skipped_note(spec, plan, skip)}",
                 file=stream,
             )
             return 0
@@ -329,7 +330,7 @@ def _sync_and_drive(
     print(
         f"study {spec.study!r} in {redact(spec.storage_url)}: "
         f"{total - len(todo) - skipped} of {total} trials done, {len(todo)} to run"
-        f"{skipped_note(plan, skip)}",
+        f"{skipped_note(spec, plan, skip)}",
         file=stream,
     )
     if not todo:
@@ -337,7 +338,8 @@ def _sync_and_drive(
     pool.shrink(len(todo))
     estimates = None if estimate is None else print_estimate(spec, plan, estimate, stream)
     progress = LaunchProgress(
-        spec.study, without(plan, skip).keys(), spec.budget.env_steps, stream,
+        spec.study, in_spec_order(without(plan, skip).keys(), spec.methods),
+        spec.budget.env_steps, stream,
         estimates=estimates, workers=len(pool),
     )  # fmt: skip
     ladder, curves = halving_state(plan, store)
@@ -381,14 +383,14 @@ def without(plan: Plan, skip: frozenset[str]) -> Plan:
     return dataclasses.replace(plan, entries=tuple(e for e in plan.entries if e.method not in skip))
 
 
-def skipped_note(plan: Plan, skip: frozenset[str]) -> str:
+def skipped_note(spec: StudySpec, plan: Plan, skip: frozenset[str]) -> str:
     """What a launch's summary line adds when it skips methods (``--skip-missing``,
     ``--only``)."""
     if not skip:
         return ""
     skipped = sum(e.method in skip for e in plan.entries)
-    methods = ", ".join(sorted(skip))
-    return f"; {methods} not run now ({skipped} trials, left for a later launch)"
+    methods = ", ".join(m for m in spec.methods if m in skip)
+    return f"; {methods} not run now ({plural(skipped, 'trial')}, left for a later launch)"
 
 
 def start_estimate(plan: Plan, study: tuple[list[Any], dict[str, Any]] | None) -> InBackground:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -80,6 +80,20 @@ def outside_a1(values: Mapping[str, Any]) -> list[str]:
 def trial_key(method: str, config_id: int, seed: int) -> str:
     """The key of one trial: ``"{method}/{config_id}/{seed}"``."""
     return f"{method}/{config_id}/{seed}"
+
+
+def method_of(key: str) -> str:
+    """The method of a plan key, a search key or a confirmation key."""
+    return key.removeprefix(f"{CONFIRM}/").split("/")[0]
+
+
+def in_spec_order(keys: Iterable[str], methods: Sequence[str]) -> list[str]:
+    """Plan keys (or method names) with their methods in the order of ``methods``, the
+    spec's (the order its author wrote them in, which every listing of methods follows; a
+    plan sorts its entries by name, for its hash), each method's keys in their own order,
+    other methods last."""
+    place = {method: index for index, method in enumerate(methods)}
+    return sorted(keys, key=lambda key: place.get(method_of(key), len(place)))
 
 
 def run_order(entry: PlanEntry) -> tuple[int, int, str]:

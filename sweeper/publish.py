@@ -7,9 +7,12 @@ Safe while the study runs, so a long study can be published as it goes:
   while the driver writes), one self-contained file (no ``-wal``). The copy is not driven:
   its driver record is released, so readers of the copy count its RUNNING trials as a
   relaunch would (not running) wherever and whenever they read it, and the report written
-  here is the report anyone gets by aggregating the copy again.
-- ``status.txt``: ``sweeper status`` of the copy and when it was taken.
+  here is the report anyone gets by aggregating the copy again. Its trials recorded in an
+  older format are rewritten in today's (``StudyStore.upgrade``: nothing a reader gets
+  changes), on the copy only: the live study's driver writes as its code does.
 - ``artifacts/``: the trials' videos, when the study keeps them in a local folder.
+- ``status.txt``: ``sweeper status`` of the copy, when it was taken, and the videos of
+  finished trials that are missing from ``artifacts/``.
 - ``aggregate/``: ``sweeper aggregate`` of the copy (nothing saved into it for the
   dashboard: the copy holds what the driver last saved).
 
@@ -18,7 +21,9 @@ damaged study is refused with one line, and the folder is left as it was. A stud
 finished yet is published as it is, with a line saying that the copy is partial.
 
 Only SQLite studies: a PostgreSQL study is refused with one line (copy it into SQLite with
-``optuna copy-study`` first). Exit 0, or 2 with one line.
+``optuna copy-study`` first). Exit 0; or 2 with one line; or 2 after publishing, with one
+line per video of a finished trial that is not in ``artifacts/`` (a video cannot be made
+again without running its trial again).
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from sweeper.storage import (
+    DONE_STATES,
     StorageError,
     damage,
     damaged_error,
@@ -42,9 +48,12 @@ from sweeper.storage import (
     resolve_url,
     sqlite_path,
 )
+from sweeper.study import open_study
+from sweeper.text import plural
 
 if TYPE_CHECKING:
     from sweeper.spec import StudySpec
+    from sweeper.storage.migrate import Upgrade
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -95,8 +104,6 @@ def unfinished(url: str, study: str) -> tuple[int, int] | None:
     """``(done, planned)`` trials of the published copy ``url`` (its plan, and the keys of a
     confirmation stage), or None when every planned trial is done. The copy is not
     driven: a trial RUNNING there is left, as a relaunch would count it."""
-    from sweeper.study import open_study
-
     with open_study(url, study, write=False) as store:
         attrs = store.attrs
         keys = [*(attrs.get("plan") or []), *((attrs.get("confirm") or {}).get("keys") or [])]
@@ -105,17 +112,38 @@ def unfinished(url: str, study: str) -> tuple[int, int] | None:
     return None if done == planned else (done, planned)
 
 
-def release_driver(url: str, study: str) -> None:
-    """Mark the study in ``url`` as not driven (its driver record released, as a driver
-    that stops releases it)."""
-    import optuna
+def settle_copy(url: str, study: str) -> Upgrade:
+    """Mark the copied study in ``url`` as not driven (its driver record released, as a
+    driver that stops releases it), then rewrite its trials recorded in an older format in
+    today's (``StudyStore.upgrade``)."""
+    with open_study(url, study, write=True, create=False) as store:
+        store.set_study_attr("driver", None)
+        return store.upgrade()
 
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    optuna.load_study(study_name=study, storage=url).set_user_attr("driver", None)
+
+def missing_videos(url: str, study: str, folder: Path) -> list[str]:
+    """One line per video (artifact) of a finished trial (COMPLETE or PRUNED) whose file is
+    not in ``folder``: the trial, its key, the file's name and id."""
+    from sweeper.artifacts import trial_artifacts
+
+    lines = []
+    with open_study(url, study, write=False) as store:
+        for trial in store.trials():
+            if trial.state.name not in DONE_STATES:
+                continue
+            metas = trial_artifacts(store.storage, trial._trial_id)
+            for meta in sorted(metas, key=lambda meta: meta["filename"]):
+                if not (folder / meta["artifact_id"]).is_file():
+                    lines.append(
+                        f"trial {trial.number} ({trial.user_attrs.get('key')}): its video "
+                        f"{meta['filename']} is missing ({folder.name}/{meta['artifact_id']})"
+                    )
+    return lines
 
 
 def run(spec: StudySpec, args: argparse.Namespace) -> int:
-    """``sweeper publish``: exit 0, or 2 with one line."""
+    """``sweeper publish``: exit 0; 2 with one line; or 2 once published, with a line per
+    missing video."""
     from sweeper.aggregate import aggregate
     from sweeper.artifacts import artifact_location
     from sweeper.status import run as status
@@ -135,17 +163,20 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
             raise StorageError(f"{database} is the study's own database: publish elsewhere")
         copy_database(source, database)
         url = f"sqlite:///{database}"
-        release_driver(url, spec.study)
+        upgraded = settle_copy(url, spec.study)
+        videos = Path(artifact_location(spec))
+        copied = videos.is_dir()
+        if copied:
+            shutil.copytree(videos, out / "artifacts", dirs_exist_ok=True)
+        missing = missing_videos(url, spec.study, out / "artifacts")
         published = spec.with_overrides(storage=url)
         with (out / "status.txt").open("w", encoding="utf-8") as stream:
             if status(published, args, stream) != 0:
                 raise StorageError(f"{database}: its ledger cannot be read (see above)")
             taken = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
             print(f"copied from {redact(spec.storage_url)} at {taken}", file=stream)
-        videos = Path(artifact_location(spec))
-        copied = videos.is_dir()
-        if copied:
-            shutil.copytree(videos, out / "artifacts", dirs_exist_ok=True)
+            for line in missing:
+                print(line, file=stream)
         artifacts = str(out / "artifacts") if copied else None
         result = aggregate(url, spec.study, out / "aggregate", seed=spec.seed, dashboard=False,
                            artifacts=artifacts)  # fmt: skip
@@ -153,10 +184,16 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     except (ValueError, OSError, sqlite3.Error) as e:  # StorageError is a ValueError
         print(f"sweeper publish: {e}", file=sys.stderr)
         return 2
+    if upgraded.params or upgraded.curves:
+        trials, curves = plural(upgraded.params, "trial"), plural(upgraded.curves, "curve")
+        print(f"rewrote the copy's older records in today's format: the params of {trials}, "
+              f"{curves}")  # fmt: skip
     print(f"published study {spec.study!r} to {out}: study.db, status.txt, "
           f"{'artifacts/, ' if copied else ''}aggregate/ (report: {result.report})")  # fmt: skip
     if partial is not None:
         done, planned = partial
         print(f"the study is unfinished ({done} of {planned} trials done): the published copy "
               "is partial; publish again once it ends")  # fmt: skip
-    return 0
+    for line in missing:
+        print(f"sweeper publish: {line}", file=sys.stderr)
+    return 2 if missing else 0

@@ -11,6 +11,8 @@ import os
 import time
 from typing import TYPE_CHECKING, Any, TextIO
 
+from sweeper.text import plural
+
 if TYPE_CHECKING:
     from sweeper.spec import StudySpec
     from sweeper.storage import StudyStore
@@ -55,7 +57,7 @@ def record_random_agent(spec: StudySpec, store: StudyStore, stream: TextIO) -> N
         return
     print(
         f"measuring a random agent's success rate on {spec.env.name} "
-        f"({spec.random_episodes} episodes)",
+        f"({plural(spec.random_episodes, 'episode')})",
         file=stream,
     )
     try:

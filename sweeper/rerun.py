@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 from sweeper.plan import CONFIRM, PlanEntry, build_plan, confirm_plan
 from sweeper.storage import current_trials, curve_of, redact
 from sweeper.study import open_study, stored_files
+from sweeper.text import plural
 
 if TYPE_CHECKING:
     from sweeper.spec import StudySpec
@@ -139,8 +140,8 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     curve = {"step": list(result.steps), **{k: list(v) for k, v in result.metrics.items()}}
     difference = first_difference(recorded, curve)
     if difference is None:
-        print(f"the same curve: every metric at all {len(recorded['step'])} steps is the "
-              "recorded float")  # fmt: skip
+        print(f"the same curve: every metric at all {plural(len(recorded['step']), 'step')} "
+              "is the recorded float")  # fmt: skip
         return 0
     print(f"another curve: first difference at {difference}")
     return 1

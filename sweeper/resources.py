@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, TextIO
 import ray
 
 from sweeper.execution import Unreachable, one_line, resources_fit
+from sweeper.text import plural
 
 if TYPE_CHECKING:
     from sweeper.spec import Execution
@@ -40,7 +41,7 @@ def pool_size(execution: Execution, planned: int, stream: TextIO) -> int | None:
         return None
     if fit < execution.max_concurrent:
         print(
-            f"sweeper launch: note: the Ray cluster holds {fit} trials at once, "
+            f"sweeper launch: note: the Ray cluster holds {plural(fit, 'trial')} at once, "
             f"not execution.max_concurrent={execution.max_concurrent}",
             file=stream,
         )
@@ -75,9 +76,9 @@ def oversubscription(
             f"lower threads_per_trial, or reserve them (cpus_per_trial: {threads})"
         )
     return (
-        f"threads_per_trial {threads} x {trials} trials at once = {threads * trials} torch "
-        f"threads, more than the {cpus:g} CPUs {where}: every trial would run several times "
-        f"slower; {fix}"
+        f"threads_per_trial {threads} x {plural(trials, 'trial')} at once = "
+        f"{plural(threads * trials, 'torch thread')}, more than the {cpus:g} CPUs {where}: every "
+        f"trial would run several times slower; {fix}"
     )
 
 

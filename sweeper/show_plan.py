@@ -29,6 +29,7 @@ from sweeper.halving import env_steps_spent
 from sweeper.plan import A1, A1_SAMPLES, Plan, build_plan, outside_a1
 from sweeper.storage import redact
 from sweeper.study import NoStudy, open_study, stored_files
+from sweeper.text import plural
 
 if TYPE_CHECKING:
     from sweeper.spec import StudySpec
@@ -65,9 +66,10 @@ def plan_lines(
     calibration_seconds = time.perf_counter() - start
     steps = spec.budget.env_steps
     lines = [
-        f"study {spec.study!r}: {len(spec.methods)} methods x {spec.trials_per_method} "
-        f"configurations x {len(spec.seeds)} seeds = {len(plan.entries)} trials of "
-        f"{steps:,} env steps ({len(plan.entries) * steps:,} in all)"
+        f"study {spec.study!r}: {plural(len(spec.methods), 'method')} x "
+        f"{plural(spec.trials_per_method, 'configuration')} x {plural(len(spec.seeds), 'seed')} "
+        f"= {plural(len(plan.entries), 'trial')} of {steps:,} env steps "
+        f"({len(plan.entries) * steps:,} in all)"
     ]
     width = max(len("method"), *(len(m) for m in spec.methods))
     lines.append(
@@ -92,13 +94,13 @@ def plan_lines(
     if plan.schedule is not None:
         lines += halving_lines(replace(plan, entries=tuple(known)), estimates, len(spec.seeds))
     lines += summary_lines(known, done, estimates, spec.execution, calibration_seconds)
-    unknown = sorted({e.method for e in plan.entries} - {e.method for e in known})
+    unknown = [m for m in spec.methods if m not in {e.method for e in known}]
     if unknown:
         count = sum(e.method in unknown for e in plan.entries)
         lines.append(
-            f"not counted above: {', '.join(unknown)} ({count} trials), whose cost is unknown "
-            "until the file it needs is given (sweeper launch refuses the study without it, "
-            "or runs the other methods with --skip-missing)"
+            f"not counted above: {', '.join(unknown)} ({plural(count, 'trial')}), whose cost "
+            "is unknown until the file it needs is given (sweeper launch refuses the study "
+            "without it, or runs the other methods with --skip-missing)"
         )
     return lines
 
@@ -147,8 +149,8 @@ def halving_lines(plan: Plan, estimates: dict[str, TrialEstimate], seeds: int) -
     ]
     for stop, size in zip(schedule.stops, schedule.sizes, strict=True):
         lines.append(
-            f"  to step {stop:>11,}: {size} configuration(s) x {seeds} seed(s) per method, "
-            f"{size * seeds * methods} trials"
+            f"  to step {stop:>11,}: {plural(size, 'configuration')} x {plural(seeds, 'seed')} "
+            f"per method, {plural(size * seeds * methods, 'trial')}"
         )
     spent = env_steps_spent(schedule.stops, schedule.sizes, seeds)
     full = len(plan.entries) // methods * schedule.stops[-1]

@@ -54,6 +54,7 @@ from sweeper.spec_space import (
     search_space,
 )
 from sweeper.spec_yaml import SpecError, load_yaml
+from sweeper.text import plural
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 
@@ -400,9 +401,10 @@ class StudySpec(StrictModel):
         keys = len(self.methods) * self.trials_per_method_total
         if keys > MAX_PLAN_KEYS:
             raise spec_error(
-                f"{len(self.methods)} methods x {self.trials_per_method} configurations x "
-                f"{len(self.seeds)} seeds = {keys} trials, more than the {MAX_PLAN_KEYS} a "
-                "plan may hold: split the study",
+                f"{plural(len(self.methods), 'method')} x "
+                f"{plural(self.trials_per_method, 'configuration')} x "
+                f"{plural(len(self.seeds), 'seed')} = {keys} trials, more than the "
+                f"{MAX_PLAN_KEYS} a plan may hold: split the study",
                 at="trials_per_method",
             )
         return self

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, TextIO
 
 from agent.config import Outcome
-from sweeper.plan import build_plan
+from sweeper.plan import build_plan, in_spec_order
 from sweeper.storage import STORAGE_GRACE, current_trials, ledger, redact
 from sweeper.study import NoStudy, open_study, stored_files
+from sweeper.text import plural
 
 if TYPE_CHECKING:
     from sweeper.spec import StudySpec
@@ -32,7 +34,9 @@ def run(spec: StudySpec, args: argparse.Namespace, stream: TextIO | None = None)
     try:
         plan = build_plan(stored_files(spec))
         grace = spec.execution.storage_grace
-        lines = status_lines(spec.study, spec.storage_url, plan.keys(), plan.hash, grace)
+        lines = status_lines(
+            spec.study, spec.storage_url, plan.keys(), plan.hash, grace, methods=list(spec.methods)
+        )
     except ValueError as e:  # StorageError, a plan the spec cannot give
         print(f"sweeper status: {e}", file=sys.stderr)
         return 2
@@ -42,9 +46,16 @@ def run(spec: StudySpec, args: argparse.Namespace, stream: TextIO | None = None)
 
 
 def status_lines(
-    study: str, url: str, keys: list[str], plan_hash: str, grace: float = STORAGE_GRACE
+    study: str,
+    url: str,
+    keys: list[str],
+    plan_hash: str,
+    grace: float = STORAGE_GRACE,
+    methods: Sequence[str] = (),
 ) -> list[str]:
-    """The ledger table and notes of ``study`` in ``url`` for the planned ``keys``."""
+    """The ledger table and notes of ``study`` in ``url`` for the planned ``keys``, the
+    methods in the order of ``methods`` (the spec's)."""
+    keys = in_spec_order(keys, methods)
     try:
         with open_study(url, study, write=False, plan_hash=plan_hash, grace=grace) as store:
             attrs = store.attrs
@@ -56,11 +67,13 @@ def status_lines(
     confirm = attrs.get("confirm")
     if confirm:  # the confirmation stage (sweeper confirm), counted apart
         lines.append(
-            f"confirmation stage: top {confirm['top_k']} configurations per method on seeds "
-            f"{', '.join(map(str, confirm['seeds']))}"
+            f"confirmation stage: top {plural(confirm['top_k'], 'configuration')} per method "
+            f"on {plural(len(confirm['seeds']), 'fresh seed')} "
+            f"({', '.join(map(str, confirm['seeds']))})"
         )
-        lines += _table(ledger(confirm["keys"], trials, alive))
-        keys = [*keys, *confirm["keys"]]
+        confirm_keys = in_spec_order(confirm["keys"], methods)
+        lines += _table(ledger(confirm_keys, trials, alive))
+        keys = [*keys, *confirm_keys]
     driver = attrs.get("driver")
     if alive:
         lines.append(f"driver: running (host {driver['host']}, pid {driver['pid']})")

@@ -72,7 +72,7 @@ def synthetic(tmp_path_factory):
     save_note(study, "my own notes")
     spec = write_spec(root / "syn.yaml", "syn")
     out = root / "out"
-    args = argparse.Namespace(out=str(out), no_dashboard=False)
+    args = argparse.Namespace(spec=[str(spec)], storage=url, out=str(out), no_dashboard=False)
     assert aggregate_command.run([load_spec(spec).with_overrides(storage=url)], args) == 0
     return url, out
 
@@ -533,4 +533,24 @@ def test_aggregate_says_how_many_files_it_wrote(ci_study, ci_aggregate, tmp_path
     printed = capsys.readouterr().out
     written = sorted(p.name for p in out.iterdir())
     assert {"final_frames.png", "env_views.png", "report.md"} <= set(written)
-    assert printed.startswith(f"wrote {len(written)} files to {out}")
+    assert f"\nwrote {len(written)} files to {out}\n" in printed
+
+
+def test_the_verdict_says_whether_the_best_interval_separates_it_from_the_next():
+    from sweeper.aggregate.report import verdict
+
+    def table(*rows):
+        return pd.DataFrame(rows, columns=["method", "n", "iqm", "iqm_low", "iqm_high"])
+
+    apart = table(("a", 5, 0.2, 0.1, 0.3), ("b", 5, 0.6, 0.5, 0.7), ("c", 0, None, None, None))
+    assert verdict(apart) == (
+        "Highest IQM AUC: b, 0.600 [0.500, 0.700]; its 95% interval lies above that of the "
+        "next, a, 0.200 [0.100, 0.300]."
+    )
+    close = table(("a", 5, 0.5, 0.3, 0.6), ("b", 5, 0.6, 0.5, 0.7))
+    assert verdict(close).endswith("overlaps that of the next, a, 0.500 [0.300, 0.600]: "
+                                   "this study does not separate the two.")  # fmt: skip
+    assert verdict(apart.iloc[1:]) == (
+        "Highest IQM AUC: b, 0.600 [0.500, 0.700]; no other method has a done trial."
+    )
+    assert verdict(apart.iloc[2:]) == "No method has a done trial yet."

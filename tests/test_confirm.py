@@ -106,7 +106,9 @@ def test_confirm_reruns_the_top_k_on_fresh_seeds_and_is_reported_apart(tmp_path,
     capsys.readouterr()
     assert cli.main(["status", spec_path]) == 0
     status = capsys.readouterr().out.splitlines()
-    stage = status.index("confirmation stage: top 2 configurations per method on seeds 2, 3")
+    stage = status.index(
+        "confirmation stage: top 2 configurations per method on 2 fresh seeds (2, 3)"
+    )
     rows = {line.split()[0]: line.split()[1:] for line in status[stage + 1 :] if line}
     assert rows["pixel"] == rows["linear"] == ["4", "4", "0", "0", "0", "0"]
     assert rows["total"] == ["8", "8", "0", "0", "0", "0"]

@@ -456,6 +456,22 @@ def test_diagnose_help_shows_real_defaults_and_the_env_names(capsys) -> None:
     assert "--seed SEED seeds the encoders' random weights" in out and "(default: 0)" in out
 
 
+@pytest.mark.parametrize("command", ["diagnose", "launch", "aggregate"])
+def test_help_wraps_between_words_only(command, capsys, monkeypatch) -> None:
+    """argparse broke a word longer than the room left on a line ("gr adient" in
+    ``--analyses``' default): at any width the help holds the same words as on one line."""
+
+    def words(columns: int) -> list[str]:
+        monkeypatch.setenv("COLUMNS", str(columns))
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        return capsys.readouterr().out.split()
+
+    wide = words(1000)
+    for columns in (40, 60, 80, 100):
+        assert words(columns) == wide, columns
+
+
 def test_cli_on_fetch_push(tmp_path) -> None:
     code = main(["diagnose", "--env", "fetch_push", "--encoders", "pixel", "--image-size", "32",
                  "--out", str(tmp_path), *SMALL])  # fmt: skip

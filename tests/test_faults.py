@@ -605,7 +605,7 @@ def test_more_worker_deaths_than_retries_fail_the_trial_and_a_relaunch_reruns_it
     deaths = failed.user_attrs["worker_deaths"]
     assert len(deaths) == 2 and all("ActorDiedError" in death for death in deaths), deaths
     assert failed.user_attrs["error"] == f"worker died 2 times; last: {deaths[-1]}"
-    assert "1 trial(s) failed" in stream.getvalue()
+    assert "1 trial failed" in stream.getvalue()
 
     assert launch(spec, plan, train=instant, stream=io.StringIO()) == 0  # re-run, counted once
     trials = stored_trials(spec.storage_url, "deaths")
@@ -846,7 +846,7 @@ def test_sigterm_mid_study_interrupts_the_trials_in_flight_and_a_relaunch_resume
         kill_group(first, signal.SIGKILL)
     said = (tmp_path / "first.log").read_text().strip().splitlines()[-3:]
     assert said == [
-        "sweeper launch: stopped; 2 trial(s) in flight were interrupted; the next launch:",
+        "sweeper launch: stopped; 2 trials in flight interrupted; the next launch:",
         "  linear/0/0: resumes from step 100 (its checkpoint)",
         "  pixel/0/0: resumes from step 100 (its checkpoint)",
     ]

@@ -707,7 +707,7 @@ def test_an_interrupted_launch_says_which_trials_resume_from_a_checkpoint(tmp_pa
     assert driver.stop() == 130
     assert interrupted == [0, 1]
     assert stream.getvalue().strip().splitlines() == [
-        "sweeper launch: stopped; 2 trial(s) in flight were interrupted; the next launch:",
+        "sweeper launch: stopped; 2 trials in flight interrupted; the next launch:",
         f"  {first.key}: resumes from step 250 (its checkpoint)",
         f"  {plan.entries[1].key}: restarts from step 0 (no checkpoint written yet)",
     ]

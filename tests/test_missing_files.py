@@ -261,7 +261,7 @@ def test_only_runs_the_named_methods_and_a_later_launch_the_rest(
         "'pixel_tau'? methods: pixel, pixel_tau\n"
     )
     assert cli.main(["launch", str(spec), "--only", "pixel_tau"]) == 0
-    assert "0 of 2 trials done, 1 to run; pixel not run now (1 trials" in capsys.readouterr().err
+    assert "0 of 2 trials done, 1 to run; pixel not run now (1 trial," in capsys.readouterr().err
     assert status_rows(capsys, spec)["pixel"] == ["1", "0", "0", "0", "0", "1"]
     assert status_rows(capsys, spec)["pixel_tau"] == ["1", "1", "0", "0", "0", "0"]
     assert cli.main(["launch", str(spec)]) == 0

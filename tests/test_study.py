@@ -79,12 +79,27 @@ def test_status_and_aggregate_read_a_finished_study_on_read_only_media(tmp_path,
         rows = {line.split()[0]: line.split()[1:] for line in printed.splitlines()[1:]}
         assert rows["pixel"][:2] == ["1", "1"] and rows["linear"][0] == "1"  # planned, done
         assert "driver: not running" in printed
-        args = argparse.Namespace(out=str(out), no_dashboard=False)
+        args = argparse.Namespace(spec=[CI_SPEC], storage=url, out=str(out), no_dashboard=False)
         assert aggregate.run([spec], args) == 0
         err = capsys.readouterr().err
         assert "warning: the comparison was not saved into the study" in err
         assert snapshot(media) == before  # same files, bytes and mtimes
     assert (out / "report.md").is_file() and (out / "auc_table.csv").is_file()
+
+
+def test_status_and_plan_list_methods_in_the_spec_order(tmp_path, capsys):
+    """The order its author wrote the methods in (the CI spec: pixel, then linear), not the
+    plan's by name: ``sweeper status`` listed them sorted, ``sweeper plan`` as written."""
+    from sweeper.show_plan import plan_lines
+
+    spec = spec_at(f"sqlite:///{tmp_path / 'none.db'}")
+    written = list(spec.methods)
+    assert written == ["pixel", "linear"] and sorted(written) != written
+    assert status.run(spec, argparse.Namespace()) == 0
+    table = capsys.readouterr().out.splitlines()[2:]  # after the study line and the header
+    assert [line.split()[0] for line in table[:2]] == written
+    lines = plan_lines(spec, build_plan(spec), set(), dict.fromkeys(written, 60.0))
+    assert [line.split()[0] for line in lines[2:4]] == written  # after the summary, the header
 
 
 def test_a_reader_cannot_write(tmp_path):
@@ -140,7 +155,8 @@ def test_readers_use_read_only_transactions_on_postgresql(pg_url, tmp_path, caps
         spec = spec_at(pg_url)
         assert status.run(spec, argparse.Namespace()) == 0
         assert "driver: not running" in capsys.readouterr().out
-        args = argparse.Namespace(out=str(tmp_path / "out"), no_dashboard=True)
+        out = str(tmp_path / "out")
+        args = argparse.Namespace(spec=[CI_SPEC], storage=pg_url, out=out, no_dashboard=True)
         assert aggregate.run([spec], args) == 0
     finally:
         event.remove(Pool, "connect", read_only)

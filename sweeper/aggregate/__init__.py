@@ -60,7 +60,12 @@ from sweeper.aggregate.frame import (
 )
 from sweeper.aggregate.halving import halving_markdown, halving_table
 from sweeper.aggregate.pictures import report_pictures
-from sweeper.aggregate.report import confirm_markdown, report_markdown, table_markdown
+from sweeper.aggregate.report import (
+    confirm_markdown,
+    report_markdown,
+    table_markdown,
+    terminal_table,
+)
 from sweeper.aggregate.tables import (
     AUC_COLUMNS,
     CONFIDENCE,
@@ -75,8 +80,9 @@ from sweeper.aggregate.tables import (
     study_tables,
 )
 from sweeper.artifacts import artifact_location
-from sweeper.storage import StorageError, is_database_error, reason_of
+from sweeper.storage import StorageError, is_database_error, reason_of, redact
 from sweeper.study import open_study
+from sweeper.text import plural
 
 if TYPE_CHECKING:
     from sweeper.aggregate.budget import BudgetReport
@@ -150,19 +156,29 @@ def run(specs: list[StudySpec], args: argparse.Namespace) -> int:
                 dashboard=not args.no_dashboard,
                 artifacts=artifact_location(spec),
             )
-            files = result.files
         else:
             out = Path(args.out) if args.out else combined_dir([s.study for s in specs])
             studies = [(s.storage_url, s.study) for s in specs]
             result = aggregate_studies(studies, out, seed=specs[0].seed)
-            files = result.files
     except ValueError as e:  # StorageError, an unknown or empty study
         print(f"sweeper aggregate: {e}", file=sys.stderr)
         return 2
-    print(f"wrote {len(files)} files to {out}; report: {result.report}")
+    lines = []
+    if len(specs) == 1:  # the answer first, where the command was typed
+        lines += [f"study {specs[0].study!r}:", *terminal_table(result.tables), ""]
+    figures = [path.name for path in result.files if path.suffix == ".png"]
+    lines += [
+        f"wrote {plural(len(result.files), 'file')} to {out}",
+        f"  report:    {result.report}",
+        f"  figures:   {', '.join(figures)}",
+    ]
+    if len(specs) == 1:
+        storage = f" --storage {redact(args.storage)}" if args.storage else ""
+        lines.append(f"  dashboard: sweeper dashboard {args.spec[0]}{storage}")
     budget = getattr(result, "budget", None)
     if budget is not None:  # several studies of one env: where the budget table is
-        print(budget_pointer(budget, out))
+        lines.append(budget_pointer(budget, out))
+    print("\n".join(lines))
     return 0
 
 
@@ -242,7 +258,8 @@ def aggregate(
     start = time.perf_counter()
     frame = load_study_frame(storage_url, study_name)
     say(
-        f"read {frame['trial'].nunique()} trials, {len(frame)} rows of study {study_name!r} "
+        f"read {plural(frame['trial'].nunique(), 'trial')}, {plural(len(frame), 'row')} of "
+        f"study {study_name!r} "
         f"in {time.perf_counter() - start:.1f} s"
     )
     search = stage_frame(frame, "search")  # the confirmation stage is reported apart

@@ -51,6 +51,7 @@ from sweeper.aggregate.tables import (
 )
 from sweeper.stats import SUMMARIES, Group, several, stratified_bootstrap
 from sweeper.storage import driver_alive
+from sweeper.text import plural
 
 #: thresholds of the normalised profiles: a method may beat its study's control (tau > 1)
 NORMALIZED_TAUS = tuple(i / 100 for i in range(0, 151))
@@ -159,7 +160,7 @@ def aggregate_studies(
         improvements.append(improvement_table(frame, seed=seed).assign(study=label))
         frames.append(frame)
         why = f"not normalised: {anchor.problem}" if anchor.problem else "normalised"
-        say(f"read study {label!r} ({frame['trial'].nunique()} trials): {why}")
+        say(f"read study {label!r} ({plural(frame['trial'].nunique(), 'trial')}): {why}")
     methods = list(dict.fromkeys(m for frame in frames for m in methods_of(frame)))
     scores = pd.concat(normalized, ignore_index=True)
     table = normalized_table(scores, methods, seed=seed)

@@ -33,6 +33,7 @@ from sweeper.aggregate.report import (
 )
 from sweeper.aggregate.tables import CONFIDENCE, Tables
 from sweeper.storage import OBJECTIVE_NAME, name_objective
+from sweeper.text import plural
 
 #: first and last lines of the study note's section written by ``sweeper aggregate``: link
 #: reference definitions, the Markdown comment that renders as nothing (optuna-dashboard
@@ -282,7 +283,7 @@ def _comparison_figure(go, frame: pd.DataFrame, tables: Tables):
             mark = "*" if r.pairs < MIN_RELIABLE else ""
             versus = (
                 f"{_fmt(r.probability, 2)} [{_fmt(r.low, 2)}, {_fmt(r.high, 2)}] over "
-                f"{following.method} ({r.pairs}{mark} pairs)"
+                f"{following.method} ({plural(r.pairs, 'pair')}{mark})"
             )
         rows["rank"].append(str(rank) if row.n else "–")
         rows["method"].append(f"<b>{row.method}</b>")

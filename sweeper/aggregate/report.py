@@ -9,8 +9,9 @@ from typing import Any
 
 import pandas as pd
 
-from sweeper.aggregate.frame import random_success, scored, study_info, trial_rows
+from sweeper.aggregate.frame import methods_of, random_success, scored, study_info, trial_rows
 from sweeper.aggregate.tables import CONFIDENCE, RESAMPLES, Tables
+from sweeper.text import plural
 
 
 def _fmt(value: Any, digits: int = 3) -> str:
@@ -120,6 +121,48 @@ def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame, pairs: bool =
     return "\n".join(lines)
 
 
+def terminal_table(tables: Tables) -> list[str]:
+    """The per-method table ``sweeper aggregate`` prints, then ``verdict``'s line: per
+    method (in the spec's order) the IQM AUC and the IQM final success (the last point of
+    the sample-efficiency curve, ``tables.efficiency``), each with its interval, and its
+    done and planned trials."""
+    efficiency = tables.efficiency.sort_values("step", kind="stable")
+    final = efficiency.groupby("method").tail(1).set_index("method")
+    ci = f"[{CONFIDENCE:.0%} CI]"
+    rows = [("method", f"IQM AUC {ci}", f"IQM final success {ci}", "n (done/planned)")]
+    for row in tables.table.to_dict("records"):
+        auc = _interval(row, "iqm") if row["n"] else "–"
+        success = "–"
+        if row["method"] in final.index:
+            point = final.loc[row["method"]]
+            success = f"{_fmt(point['iqm'])} [{_fmt(point['low'])}, {_fmt(point['high'])}]"
+        rows.append((row["method"], auc, success, f"{row['done']}/{row['planned']}"))
+    widths = [max(len(row[c]) for row in rows) for c in range(len(rows[0]))]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip()
+             for row in rows]  # fmt: skip
+    return [*lines, verdict(tables.table)]
+
+
+def verdict(table: pd.DataFrame) -> str:
+    """Which method has the highest IQM AUC, and whether its interval separates it from the
+    next method's (lies above it) or not, in one line."""
+    done = table[table["n"] > 0].sort_values("iqm", ascending=False, kind="stable")
+    if done.empty:
+        return "No method has a done trial yet."
+    best = done.iloc[0].to_dict()
+    text = f"Highest IQM AUC: {best['method']}, {_interval(best, 'iqm')}"
+    if len(done) == 1:
+        return f"{text}; no other method has a done trial."
+    following = done.iloc[1].to_dict()
+    other = f"that of the next, {following['method']}, {_interval(following, 'iqm')}"
+    if best["iqm_low"] > following["iqm_high"]:
+        return f"{text}; its {CONFIDENCE:.0%} interval lies above {other}."
+    return (
+        f"{text}; its {CONFIDENCE:.0%} interval overlaps {other}: this study does not "
+        "separate the two."
+    )
+
+
 def ranking_sentence(
     table: pd.DataFrame, improvement: pd.DataFrame, random: float | None = None
 ) -> str:
@@ -142,7 +185,7 @@ def ranking_sentence(
         if r is None or not r.pairs or math.isnan(r.probability):
             claims.append(f"{better.method} and {worse.method} share no done pair")
             continue
-        pairs = f"{r.pairs} paired trial{'s' if r.pairs > 1 else ''}"
+        pairs = plural(r.pairs, "paired trial")
         evidence = f"{_fmt(r.probability, 2)} [{_fmt(r.low, 2)}, {_fmt(r.high, 2)}] of {pairs}"
         if r.pairs < MIN_RELIABLE:
             evidence += f", fewer than {MIN_RELIABLE}"
@@ -218,7 +261,10 @@ def fits_markdown(frame: pd.DataFrame) -> str:
         "| reward scale (median) |",
         "|---|---:|---|---:|---:|---:|",
     ]
-    for method, rows in fits.groupby("method", sort=False):
+    for method in methods_of(frame):
+        rows = fits[fits["method"] == method]
+        if rows.empty:
+            continue
         active = ", ".join(
             f"{a}/{d}" for a, d in zip(rows["fit_active_dims"], rows["fit_latent_dim"], strict=True)
         )
@@ -247,8 +293,9 @@ def report_markdown(frame: pd.DataFrame, tables: Tables, driver_alive: bool) -> 
     if (table["running"] + table["left"]).sum():
         status = "a driver is running it" if driver_alive else "no driver is running it"
         lines += [
-            f"**Partial study** ({status}): {int(table['running'].sum())} trials running and "
-            f"{int(table['left'].sum())} left; the statistics cover done trials only.",
+            f"**Partial study** ({status}): {plural(int(table['running'].sum()), 'trial')} "
+            f"running and {int(table['left'].sum())} left; the statistics cover done trials "
+            "only.",
             "",
         ]
     warning = few_trials_warning(table)
@@ -312,9 +359,10 @@ def confirm_markdown(confirm: pd.DataFrame, seeds: int) -> str:
         "## Confirmation on fresh seeds (against the winner's curse)",
         "",
         "The best of many configurations is partly the luckiest, so its search AUC overstates "
-        f"it. `sweeper confirm` re-ran each method's {int(confirm['rank'].max())} best "
-        f"configurations (by search AUC, the mean over their search seeds) on {seeds} fresh "
-        "seeds the search never used; these trials are left out of every statistic above.",
+        f"it. `sweeper confirm` re-ran each method's "
+        f"{plural(int(confirm['rank'].max()), 'best configuration')} (by search AUC, the mean "
+        f"over their search seeds) on {plural(seeds, 'fresh seed')} the search never used; "
+        "these trials are left out of every statistic above.",
         "",
         "| method | best configuration found | its search AUC | how good it is on new seeds: "
         f"confirm AUC [{CONFIDENCE:.0%} CI] (seeds done) | drop |",

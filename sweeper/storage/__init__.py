@@ -11,7 +11,9 @@ Conventions: docs/architecture.md, "Storage conventions". One file per job:
 - ``ledger``: the ledger rules, pure functions over (key, state, outcome): a key's current
   trial, its ledger column, the per-method counts;
 - ``writer``: ``StudyStore`` (the driver's claim, heartbeats, sync and trial writes, each
-  retried through an outage), ``Heartbeat``, and whether a driver record is alive.
+  retried through an outage), ``Heartbeat``, and whether a driver record is alive;
+- ``migrate``: the rewrite of trials recorded in an older format in today's
+  (``StudyStore.upgrade``, run by ``sweeper publish`` on its copy).
 
 Opening a study (for the driver or a reader) is ``sweeper.study.open_study``. The names
 are re-exported here; a module constant (``DRIVER_STALE_SECONDS``, ``SQLITE_TIMEOUT``...)

@@ -43,6 +43,8 @@ if TYPE_CHECKING:  # optuna and sqlalchemy are imported where used: `sweeper --h
     from optuna.trial import FrozenTrial
     from sqlalchemy.engine import Connection
 
+    from sweeper.storage.migrate import Upgrade
+
 #: a driver whose heartbeat is older than this is considered dead
 DRIVER_STALE_SECONDS = 60.0
 #: seconds the driver retries a write while the database is unreachable (the default of
@@ -287,6 +289,24 @@ class StudyStore:
                 connection.execute(query.with_for_update())
             yield connection
             connection.commit()
+
+    def upgrade(self) -> Upgrade:
+        """Rewrite the trials recorded in an older format in today's
+        (``sweeper.storage.migrate``), in one transaction holding the study's lock;
+        StudyBusy while a driver runs the study (it writes in the format its code knows:
+        ``sweeper publish`` upgrades its copy, which no driver runs)."""
+        from sweeper.storage.migrate import rewrite  # it reads CURVE_ATTR from here
+
+        with self._locked() as connection:
+            driver = _read_study_attr(connection, self.study_id, "driver")
+            if driver_alive(driver):
+                raise StudyBusy(busy_message(driver))
+            fixed = _read_study_attr(connection, self.study_id, FIXED_PARAMS_ATTR) or {}
+            plan = _read_study_attr(connection, self.study_id, "plan") or []
+            done = rewrite(connection, self.study_id, fixed, [k.split("/")[0] for k in plan])
+            if done.fixed != fixed:
+                _write_study_attr(connection, self.study_id, FIXED_PARAMS_ATTR, done.fixed)
+        return done
 
     # -- trials -----------------------------------------------------------------------
 
