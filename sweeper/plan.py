@@ -65,15 +65,19 @@ class Plan:
 #: gradient samples per env step: batch 256 x 2 updates
 A1 = SACConfig()
 A1_SAMPLES = A1.batch_size * A1.updates_per_step
-_A1_CHOICES = default_space(SACConfig)
+#: A.1's choices of every SAC field, as trial params hold them (layer sizes as "256x256")
+A1_CHOICES = {
+    name: tuple(param_value(c) for c in choices)
+    for name, choices in default_space(SACConfig).items()
+}
 
 
 def outside_a1(values: Mapping[str, Any]) -> list[str]:
     """``"name value (A.1: choices)"`` for each SAC value not among A.1's choices."""
     return [
-        f"{name} {param_value(value)} (A.1: {' | '.join(str(param_value(c)) for c in choices)})"
+        f"{name} {param_value(value)} (A.1: {' | '.join(str(c) for c in A1_CHOICES[name])})"
         for name, value in values.items()
-        if value not in (choices := _A1_CHOICES[name])
+        if param_value(value) not in A1_CHOICES[name]
     ]
 
 

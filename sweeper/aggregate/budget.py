@@ -33,8 +33,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from agent.config import TRUE_REWARD_METHODS, SACConfig
-from encoders.options import default_space
+from agent.config import TRUE_REWARD_METHODS
 from sweeper.aggregate.frame import (
     methods_of,
     random_success,
@@ -49,7 +48,7 @@ from sweeper.aggregate.tables import (
     paired_improvement,
     reserved_per_trial,
 )
-from sweeper.plan import A1_SAMPLES
+from sweeper.plan import A1_CHOICES, A1_SAMPLES
 from sweeper.space import param_value
 from sweeper.stats import Group, Interval, iqm, stratified_bootstrap
 
@@ -57,11 +56,6 @@ from sweeper.stats import Group, Interval, iqm, stratified_bootstrap
 SOLVED = 0.8
 #: the SAC fields whose product is the gradient samples per env step
 BUDGET_FIELDS = ("batch_size", "updates_per_step")
-#: appendix A.1's choices of every SAC field, as trial params store them ("256x256")
-A1_CHOICES = {
-    name: tuple(param_value(c) for c in choices)
-    for name, choices in default_space(SACConfig).items()
-}
 #: the columns of ``budget_table``
 TABLE_COLUMNS = (
     "encoder",
