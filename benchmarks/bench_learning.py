@@ -61,6 +61,13 @@ FETCH_CPU = TrialConfig(
     threads=1,
 )
 
+#: the thesis' appendix A.1 setting: FETCH_CPU with 32 filters, batch 256 and 2 updates per
+#: env step (also ``bench_gpu_trial.py``'s)
+FETCH_A1 = dataclasses.replace(
+    FETCH_CPU,
+    sac=dataclasses.replace(FETCH_CPU.sac, batch_size=256, updates_per_step=2, num_filters=32),
+)
+
 TASKS: dict[str, tuple[TrialConfig, float]] = {
     "fetch_reach_state": (
         TrialConfig(
@@ -97,15 +104,7 @@ TASKS: dict[str, tuple[TrialConfig, float]] = {
         0.8,
     ),
     "fetch_reach_linear": (dataclasses.replace(FETCH_CPU, method="linear"), 0.8),
-    "fetch_reach_pixel_thesis": (
-        dataclasses.replace(
-            FETCH_CPU,
-            sac=dataclasses.replace(
-                FETCH_CPU.sac, batch_size=256, updates_per_step=2, num_filters=32
-            ),
-        ),
-        0.8,
-    ),
+    "fetch_reach_pixel_thesis": (FETCH_A1, 0.8),
 }
 DEFAULT_TASKS = (
     "fetch_reach_state",

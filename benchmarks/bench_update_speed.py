@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -43,6 +44,16 @@ def random_batch(size: int, n: int, rng: np.random.Generator) -> dict[str, np.nd
     }
 
 
+def median_seconds(call: Callable[[], object], repeats: int) -> float:
+    """The median wall seconds of ``repeats`` calls of ``call``."""
+    seconds = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        call()
+        seconds.append(time.perf_counter() - start)
+    return float(np.median(seconds))
+
+
 def time_update(size: int, batch_size: int, repeats: int) -> tuple[float, float]:
     """(seconds per update, counted GFLOP per update)."""
     cfg = SACConfig(batch_size=batch_size)
@@ -50,12 +61,7 @@ def time_update(size: int, batch_size: int, repeats: int) -> tuple[float, float]
     batch = random_batch(size, batch_size, np.random.default_rng(0))
     with FlopCounterMode(display=False) as counter:
         agent.update(batch)  # also the warm-up
-    seconds = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        agent.update(batch)
-        seconds.append(time.perf_counter() - start)
-    return float(np.median(seconds)), counter.get_total_flops() / 1e9
+    return median_seconds(lambda: agent.update(batch), repeats), counter.get_total_flops() / 1e9
 
 
 def main() -> None:
