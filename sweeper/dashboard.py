@@ -23,9 +23,11 @@ if TYPE_CHECKING:
     from sweeper.spec import StudySpec
 
 #: optuna-dashboard lists a study's plotly figures in the order a Python set of their ids
-#: iterates, which follows the process's string-hash seed, so it changed at every start;
-#: ``sweeper dashboard`` runs under this seed, with which the comparison table comes first
-#: (tests/test_browser.py)
+#: iterates, which follows the process's string-hash seed, so it changed at every start.
+#: The sweep now saves one figure (``sweeper.aggregate.dashboard.COMPARISON_ID``), whose
+#: place needs no seed; a study whose figures were saved before, six of them, until it is
+#: aggregated again, shows them under this seed with the comparison table first
+#: (``sweeper dashboard`` runs under it)
 HASH_SEED = "0"
 
 

@@ -24,7 +24,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from sweeper.plan import CONFIRM, PlanEntry, build_plan, confirm_plan
-from sweeper.storage import current_trials, curve_of, redact
+from sweeper.storage import current_trials, curve_of, describe_machine, redact, trial_attr
 from sweeper.study import open_study, stored_files
 from sweeper.text import plural
 
@@ -72,13 +72,8 @@ def machine_lines(recorded: list[dict[str, Any]] | None, here: dict[str, Any]) -
     return lines
 
 
-def describe(machine: dict[str, Any]) -> str:
-    """One line: CPU name and id, kernels, torch, GPU."""
-    gpu = f", GPU {machine['gpu']}" if "gpu" in machine else ""
-    return (
-        f"{machine.get('cpu_name', '?')} ({machine.get('cpu', '?')}), kernels "
-        f"{machine.get('kernels', '?')}, torch {machine.get('torch', '?')}{gpu}"
-    )
+#: one line for a machine: CPU name and id, kernels, torch, GPU
+describe = describe_machine
 
 
 def run(spec: StudySpec, args: argparse.Namespace) -> int:
@@ -104,7 +99,7 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     import torch
 
     import agent
-    from agent.machine import describe as describe_machine
+    from agent.machine import describe as this_machine
     from encoders.torch_base import resolve_device
 
     config = entry.trial_config
@@ -115,9 +110,9 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
         video_steps=(),
         stop_at=last if last < config.total_steps else None,  # a trial halving stopped
     )
-    here = describe_machine(resolve_device(config.device))
+    here = this_machine(resolve_device(config.device))
     print(f"study {spec.study!r} in {redact(spec.storage_url)}: {args.key} (trial {trial.number})")
-    print("\n".join(machine_lines(trial.user_attrs.get("machines"), here)))
+    print("\n".join(machine_lines(trial_attr(trial, "machines"), here)))
     print(f"re-running {config.total_steps if last == config.total_steps else last} env steps "
           f"of {config.method} on {config.env} ...", flush=True)  # fmt: skip
     start = time.perf_counter()

@@ -25,6 +25,7 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from sweeper.storage.attrs import SYSTEM_ATTRS
 from sweeper.storage.errors import (
     StorageError,
     check_plan,
@@ -35,7 +36,7 @@ from sweeper.storage.errors import (
     redact,
 )
 from sweeper.storage.urls import check_intact, open_engine, open_storage, resolve_url, sqlite_path
-from sweeper.storage.writer import CURVE_ATTR, STORAGE_GRACE, StudyStore, retry_outages
+from sweeper.storage.writer import STORAGE_GRACE, StudyStore, retry_outages
 
 if TYPE_CHECKING:  # pandas and sqlalchemy are imported where used: `sweeper --help` stays light
     import pandas as pd
@@ -133,6 +134,10 @@ def _close(storage: Any) -> None:
     storage.engine.dispose()
 
 
+#: ``SYSTEM_ATTRS`` as an SQL list of literals (fixed names, no quotes in them)
+_SYSTEM_KEYS = ", ".join(f"'{key}'" for key in sorted(SYSTEM_ATTRS))
+
+
 @dataclass(frozen=True)
 class StudyRows:
     """A whole study as Optuna stores it, one frame per table (``read_rows``)."""
@@ -140,7 +145,7 @@ class StudyRows:
     trials: pd.DataFrame  # trial_id, number, state
     values: pd.DataFrame  # trial_id, value, value_type (objective 0)
     user_attrs: pd.DataFrame  # trial_id, key, value_json
-    curves: pd.DataFrame  # trial_id, value_json: the system attr CURVE_ATTR (curve_of)
+    system_attrs: pd.DataFrame  # trial_id, key, value_json: the SYSTEM_ATTRS (trial_attr)
     params: pd.DataFrame  # trial_id, param_name, param_value, distribution_json
     intermediate: pd.DataFrame  # trial_id, step, intermediate_value, intermediate_value_type
     study_attrs: pd.DataFrame  # key, value_json
@@ -176,9 +181,9 @@ def read_rows(url: str, name: str) -> StudyRows:
                     f"SELECT x.trial_id, x.key, x.value_json FROM trial_user_attributes x "
                     f"{of_study}"
                 ),
-                curves=query(
-                    f"SELECT x.trial_id, x.value_json FROM trial_system_attributes x "
-                    f"{of_study} AND x.key = '{CURVE_ATTR}'"
+                system_attrs=query(
+                    f"SELECT x.trial_id, x.key, x.value_json FROM trial_system_attributes x "
+                    f"{of_study} AND x.key IN ({_SYSTEM_KEYS})"
                 ),
                 params=query(
                     "SELECT x.trial_id, x.param_name, x.param_value, x.distribution_json "

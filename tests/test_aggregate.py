@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import optuna
 import pandas as pd
+import plotly.graph_objects as go
 import pytest
 from optuna.trial import TrialState
 from optuna_dashboard import get_note, save_note
@@ -425,13 +426,80 @@ def test_compute_per_method_sums_the_trials_seconds(synthetic):
 def test_dashboard_names_the_objective_and_holds_the_new_figures(synthetic):
     from optuna_dashboard._custom_plot_data import get_plotly_graph_objects
 
+    from sweeper.aggregate.dashboard import COMPARISON_ID, split_views
+
     url, _ = synthetic
     study = optuna.load_study(study_name="syn", storage=url)
     assert study.metric_names == ["AUC"]
     storage = optuna.storages.get_storage(url)
     figures = get_plotly_graph_objects(storage.get_study_system_attrs(study._study_id))
-    assert {"sweeper-profiles", "sweeper-auc", "sweeper-curves-success_rate"} <= set(figures)
-    assert "IQM" in figures["sweeper-curves-success_rate"]
+    assert list(figures) == [COMPARISON_ID]
+    views = split_views(json.loads(figures[COMPARISON_ID]))
+    assert {"profiles", "auc", "curves-success_rate"} <= set(views)
+    assert "IQM" in views["curves-success_rate"]["title"]
+
+
+def test_the_dashboard_card_opens_on_the_comparison_names_the_controls_and_the_best(tmp_path):
+    """One saved figure (optuna-dashboard orders several as a set of their ids iterates),
+    the figures saved before under other ids removed; its buttons show one view at a time;
+    the controls are named as controls in the comparison and the note, beside the best
+    trial of a method that is not one."""
+    from optuna_dashboard import save_plotly_graph_object
+    from optuna_dashboard._custom_plot_data import get_plotly_graph_objects
+
+    from sweeper.aggregate.dashboard import (
+        COMPARISON_ID,
+        HIDDEN_DOMAIN,
+        save_to_dashboard,
+        split_views,
+    )
+    from sweeper.aggregate.frame import by_auc, scored, trial_rows
+    from sweeper.aggregate.tables import study_tables
+
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    fates = Special(diverged="pixel/0/0", reaped="pixel/1/0", failed="vae/1/0", running="vae/0/1")
+    study = write_synthetic_study(url, "ctl", methods=("pixel", "vae", "state"), configs=2,
+                                  seeds=(0, 1), special=fates)  # fmt: skip
+    old = ("sweeper-auc", "sweeper-trials", "sweeper-profiles", COMPARISON_ID)
+    for name in old:  # the six cards written before this figure, four of them here
+        save_plotly_graph_object(study, go.Figure(), graph_object_id=name)
+    save_plotly_graph_object(study, go.Figure(), graph_object_id="the-users-own")
+    frame = load_study_frame(url, "ctl")
+    storage = optuna.storages.get_storage(url)
+    save_to_dashboard(storage, frame, study_tables(frame, driver_alive=False))
+
+    figures = get_plotly_graph_objects(storage.get_study_system_attrs(study._study_id))
+    assert sorted(figures) == sorted([COMPARISON_ID, "the-users-own"])  # theirs is kept
+    figure = json.loads(figures[COMPARISON_ID])
+    views = split_views(figure)
+    assert [v["label"] for v in views.values()] == [
+        "Comparison", "Success rate", "Other metrics", "AUC", "Profiles", "Every trial"
+    ]  # fmt: skip
+    other = views["curves-other"]  # sawyer_door's four other metrics, a panel each
+    assert [a["text"] for a in other["annotations"]][:2] == ["angle success rate",
+                                                             "hand success rate"]  # fmt: skip
+    table = figure["data"][0]
+    assert table["type"] == "table" and table["visible"] is True
+    assert all(t["visible"] is False for t in figure["data"][1:])  # opens on the table
+    for index, (key, view) in enumerate(views.items()):
+        restyle, relayout = figure["layout"]["updatemenus"][0]["buttons"][index]["args"]
+        shown = [t["meta"] for t, v in zip(figure["data"], restyle["visible"], strict=True) if v]
+        assert set(shown) - {"comparison"} == ({key} - {"comparison"})
+        assert restyle["domain.x"][0] == ([0, 1] if key == "comparison" else HIDDEN_DOMAIN)
+        visible = {k.split(".")[0] for k, v in relayout.items() if k.endswith(".visible") and v}
+        assert {f"xaxis{a[1:]}" for a in view["xaxes"]} == {a for a in visible if a[0] == "x"}
+        assert (key == "comparison") == (not view["xaxes"])
+
+    best = by_auc(trial_rows(scored(frame)).query("method != 'state'")).iloc[0]
+    methods = table["cells"]["values"][1]
+    assert methods[0] == "<b>state</b> <i>(control)</i>"  # the best method, a control
+    assert "<b>vae</b>" in methods and "<b>pixel</b>" in methods
+    assert f"best non-control trial: #{best['trial']} {best['key']}" in views["comparison"]["title"]
+    note = get_note(study)
+    assert "Ranked by IQM AUC (95% CI): state (control) " in note
+    assert "| state (control) | 4 |" in note
+    assert f"**Best non-control trial:** #{best['trial']} {best['key']} (vae)" in note
+    assert f"it shows #{study.best_trial.number}, a trial of the control `state`" in note
 
 
 def test_the_dashboard_trial_panel_spreads_a_large_method_over_its_auc_ranks():
@@ -464,7 +532,7 @@ def test_best_trial_ties_go_to_the_lower_trial_number_everywhere(synthetic):
 
 
 def test_curve_bands_are_clipped_and_the_random_agent_is_drawn(tmp_path):
-    from sweeper.aggregate.dashboard import save_to_dashboard
+    from sweeper.aggregate.dashboard import COMPARISON_ID, save_to_dashboard, split_views
     from sweeper.aggregate.figures import clip_band
     from sweeper.aggregate.tables import study_tables
 
@@ -485,14 +553,17 @@ def test_curve_bands_are_clipped_and_the_random_agent_is_drawn(tmp_path):
     from optuna_dashboard._custom_plot_data import get_plotly_graph_objects
 
     study_id = storage.get_study_id_from_name("rnd")
-    figures = get_plotly_graph_objects(storage.get_study_system_attrs(study_id))
-    success = json.loads(figures["sweeper-curves-success_rate"])["data"]
+    figures = split_views(json.loads(get_plotly_graph_objects(
+        storage.get_study_system_attrs(study_id))[COMPARISON_ID]))  # fmt: skip
+    success = figures["curves-success_rate"]["data"]
     random = [t for t in success if t["name"].startswith("random agent")]
     assert len(random) == 1 and random[0]["y"] == [0.2, 0.2]
-    for metric in study_info(frame).metrics:
-        data = json.loads(figures[f"sweeper-curves-{metric}"])["data"]
-        for trace in data:
-            if trace.get("fill"):  # a band: no markers, inside the metric's range
+    others = [m for m in study_info(frame).metrics if m != "success_rate"]
+    for key, metrics in (("curves-success_rate", ["success_rate"]), ("curves-other", others)):
+        view = figures[key]
+        for trace in view["data"]:
+            if trace.get("fill"):  # a band: no markers, inside its metric's range
+                metric = metrics[view["xaxes"].index(trace["xaxis"])]  # its panel's
                 assert trace["mode"] == "lines"
                 values = np.array(trace["y"], dtype=float)
                 assert values.min() >= 0.0

@@ -27,7 +27,7 @@ from agent.metrics import normalized_auc
 from sweeper.artifacts import ArtifactStore, artifact_location, upload_once
 from sweeper.launcher import launch, prepare
 from sweeper.spec import SpecError, load_spec, parse_spec
-from sweeper.storage import open_storage
+from sweeper.storage import open_storage, trial_attr
 
 OPENER = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # this machine only
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -116,7 +116,7 @@ def test_ci_study_stores_one_video_per_trial_and_the_dashboard_serves_it(ci_stud
     for trial in stored:
         (meta,) = get_all_artifact_meta(trial, storage=storage)
         assert meta.filename == f"episode-step300.{video.default_format()}"
-        assert trial.user_attrs["videos"] == {meta.filename: meta.artifact_id}
+        assert trial_attr(trial, "videos") == {meta.filename: meta.artifact_id}
         assert 0 < trial.user_attrs["video_seconds"] < trial.user_attrs["seconds"]
         assert (ci_study.workdir / "artifacts" / meta.artifact_id).is_file()
     storage.engine.dispose()
@@ -184,11 +184,11 @@ def test_a_worker_killed_after_recording_does_not_store_its_video_twice(tmp_path
     assert launch(spec, plan, train=film_then_die, stream=io.StringIO()) == 0
     (trial,) = optuna.load_study(study_name="killed", storage=url).get_trials()
     assert trial.state == TrialState.COMPLETE
-    assert trial.user_attrs["attempts"] == 2 and len(trial.user_attrs["worker_deaths"]) == 1
+    assert trial.user_attrs["attempts"] == 2 and len(trial_attr(trial, "worker_deaths")) == 1
     storage = open_storage(url, create=False)
     (meta,) = get_all_artifact_meta(trial, storage=storage)
     storage.engine.dispose()
-    assert trial.user_attrs["videos"] == {"episode-step300.gif": meta.artifact_id}
+    assert trial_attr(trial, "videos") == {"episode-step300.gif": meta.artifact_id}
     assert [p.name for p in (tmp_path / "artifacts").iterdir()] == [meta.artifact_id]
     stored = (tmp_path / "artifacts" / meta.artifact_id).read_bytes()
     assert stored == attempt_video(1) != attempt_video(2)  # the first attempt's, kept

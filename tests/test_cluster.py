@@ -103,6 +103,8 @@ def _trials(storage, study_name: str):
 def test_study_survives_losing_a_worker_node(tmp_path, postgres, cluster):
     from optuna.trial import TrialState
 
+    from sweeper.storage import trial_attr
+
     storage, study = postgres
     ray_cluster, workers = cluster
     spec_path = tmp_path / "spec.yaml"
@@ -125,7 +127,7 @@ def test_study_survives_losing_a_worker_node(tmp_path, postgres, cluster):
         while driver.poll() is None and time.monotonic() - start < DEADLINE:
             running = [t for t in _trials(storage, study) if t.state == TrialState.RUNNING]
             for trial in running:
-                worker = trial.user_attrs.get("worker")
+                worker = trial_attr(trial, "worker")
                 node_pid = worker and _parent_pid(worker["pid"])
                 if node_pid not in nodes:
                     continue
@@ -161,10 +163,10 @@ def test_study_survives_losing_a_worker_node(tmp_path, postgres, cluster):
     assert all(t.state != TrialState.RUNNING for t in trials)
 
     lost = next(t for t in complete if t.user_attrs["key"] == lost_key)
-    assert lost.user_attrs["attempts"] == 2 and len(lost.user_attrs["worker_deaths"]) == 1
+    assert lost.user_attrs["attempts"] == 2 and len(trial_attr(lost, "worker_deaths")) == 1
     assert lost.user_attrs["resumed_from"] in (100, 200), "the re-run must resume its checkpoint"
     assert sorted(lost.intermediate_values) == [0, 100, 200, 300]
-    rerun_pid = lost.user_attrs["worker"]["pid"]
+    rerun_pid = trial_attr(lost, "worker")["pid"]
     assert rerun_pid != lost_pid
     assert rerun_pid in node_of, "the re-run's worker was never seen running"
     gone = next(pid for pid, node in nodes.items() if node is removed)

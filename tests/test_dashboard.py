@@ -10,6 +10,7 @@ import pytest
 from conftest import running_dashboard
 
 from sweeper import cli
+from sweeper.aggregate.dashboard import COMPARISON_ID, split_views
 
 #: no proxy: the dashboard is on this machine
 OPENER = urllib.request.build_opener(urllib.request.ProxyHandler({}))
@@ -37,13 +38,14 @@ def test_dashboard_shows_trials_curves_and_the_comparison(ci_study, ci_aggregate
         points = {p["step"]: p["value"] for p in served["intermediate_values"]}
         assert points == pytest.approx(trial.intermediate_values)
         assert len(points) == 4  # steps 0, 100, 200, 300
-    figures = {g["id"]: json.loads(g["graph_object"]) for g in detail["plotly_graph_objects"]}
-    assert {"sweeper-auc", "sweeper-curves-success_rate", "sweeper-curves-final_distance"} <= set(
-        figures
-    )
-    names = {trace.get("name", "") for trace in figures["sweeper-curves-success_rate"]["data"]}
+    # the sweep's one card (its place on the page needs no hash seed), its views behind buttons
+    assert [g["id"] for g in detail["plotly_graph_objects"]] == [COMPARISON_ID]
+    figures = split_views(json.loads(detail["plotly_graph_objects"][0]["graph_object"]))
+    assert list(figures) == ["comparison", "curves-success_rate", "curves-final_distance", "auc",
+                             "profiles", "trials"]  # fmt: skip
+    names = {trace.get("name", "") for trace in figures["curves-success_rate"]["data"]}
     assert {"pixel (n = 1)", "linear (n = 1)"} <= names
-    points, iqm = figures["sweeper-auc"]["data"]  # every trial's AUC; IQM with its CI
+    points, iqm = figures["auc"]["data"]  # every trial's AUC; IQM with its CI
     assert sorted(points["y"]) == pytest.approx(sorted(t.value for t in stored))
     assert iqm["x"] == ["pixel", "linear"] and len(iqm["y"]) == 2
     note = detail["note"]["body"]
@@ -57,14 +59,14 @@ def test_dashboard_shows_trials_curves_and_the_comparison(ci_study, ci_aggregate
         attrs = {a["key"]: a["value"] for a in served["user_attrs"]}
         assert attrs["method"] == trial.user_attrs["method"]
         assert attrs["key"] == trial.user_attrs["key"]
-    panels = figures["sweeper-trials"]
-    titles = [a["text"] for a in panels["layout"]["annotations"]]
+    panels = figures["trials"]
+    titles = [a["text"] for a in panels["annotations"]]
     assert titles == ["pixel", "linear"]
     for trial in stored:
         method = trial.user_attrs["method"]
         panel = titles.index(method)
         trace = next(t for t in panels["data"] if t["name"] == method)
-        assert trace["xaxis"] == ("x" if panel == 0 else f"x{panel + 1}")
+        assert trace["xaxis"] == panels["xaxes"][panel]
         name = f"{trial.user_attrs['key']} (trial {trial.number})"
         points = {
             x: y for x, y, text in zip(trace["x"], trace["y"], trace["text"], strict=True)
@@ -93,10 +95,10 @@ def test_dashboard_importance_and_params_show_what_varies_and_the_method(ci_stud
              if a["key"] == "fixed_params"}  # fmt: skip
     assert attrs["fixed_params"]["hidden_sizes"] == "64x64"
     assert attrs["fixed_params"]["linear.latent_dim"] == 16
-    figures = {g["id"]: json.loads(g["graph_object"]) for g in detail["plotly_graph_objects"]}
-    table = figures["sweeper-comparison"]["data"][0]
+    figures = split_views(json.loads(detail["plotly_graph_objects"][0]["graph_object"]))
+    table = figures["comparison"]["data"][0]
     assert table["type"] == "table" and "<b>pixel</b>" in json.dumps(table["cells"])
-    for name in ("sweeper-curves-success_rate", "sweeper-curves-final_distance"):
+    for name in ("curves-success_rate", "curves-final_distance"):
         for trace in figures[name]["data"]:  # every trace says how it is drawn
             assert "mode" in trace, name
             if trace.get("fill"):  # a band: its fill only, no markers

@@ -28,7 +28,7 @@ from agent import train
 from agent.config import TrialResult
 from sweeper.launcher import launch, prepare, study_attrs
 from sweeper.plan import build_plan
-from sweeper.storage import StudyStore, curve_of, open_storage
+from sweeper.storage import StudyStore, curve_of, open_storage, trial_attr
 from sweeper.study import open_study
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -91,7 +91,7 @@ def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path, local_
             checkpointed = any(checkpoints.glob(f"*/{victim.key}/checkpoint.pt"))
             if trial is None or trial.state != TrialState.RUNNING or not checkpointed:
                 return None
-            return trial.user_attrs.get("worker")
+            return trial_attr(trial, "worker")
 
         worker = wait_until(running_worker, 240, "a checkpoint of the victim trial")
         os.kill(worker["pid"], signal.SIGKILL)
@@ -103,9 +103,9 @@ def test_worker_killed_mid_trial_is_resumed_with_the_same_curve(tmp_path, local_
     by_key = check_exact_budget(trials, plan.keys())
     retried = by_key[victim.key]
     assert retried.user_attrs["attempts"] == 2
-    assert len(retried.user_attrs["worker_deaths"]) == 1
-    assert "ActorDiedError" in retried.user_attrs["worker_deaths"][0]
-    assert retried.user_attrs["worker"]["pid"] != worker["pid"]
+    assert len(trial_attr(retried, "worker_deaths")) == 1
+    assert "ActorDiedError" in trial_attr(retried, "worker_deaths")[0]
+    assert trial_attr(retried, "worker")["pid"] != worker["pid"]
     assert retried.user_attrs["resumed_from"] >= 100
     assert by_key[plan.entries[1].key].user_attrs["attempts"] == 1
 
@@ -353,7 +353,7 @@ def test_a_stopped_worker_is_noticed_and_its_trial_retried(tmp_path, local_ray):
             trial = next((t for t in trials if t.user_attrs.get("key") == victim.key), None)
             if trial is None or 100 not in trial.intermediate_values:
                 return None
-            return trial.user_attrs.get("worker")
+            return trial_attr(trial, "worker")
 
         stopped = wait_until(reporting_worker, 120, "a report of the victim trial")["pid"]
         os.kill(stopped, signal.SIGSTOP)
@@ -368,7 +368,7 @@ def test_a_stopped_worker_is_noticed_and_its_trial_retried(tmp_path, local_ray):
     assert len(trials) == 2
     retried = by_key[victim.key]
     assert retried.user_attrs["attempts"] == 2
-    assert "no answer" in retried.user_attrs["worker_deaths"][0]
+    assert "no answer" in trial_attr(retried, "worker_deaths")[0]
     assert retried.user_attrs["resumed_from"] >= 100
 
 
@@ -451,7 +451,7 @@ def test_confirm_stage_ledger_is_exact_under_a_worker_kill_and_a_driver_relaunch
         def checkpointed_worker():
             for trial in confirming():
                 if trial.state == TrialState.RUNNING and 100 in trial.intermediate_values:
-                    return trial.user_attrs["key"], trial.user_attrs["worker"]["pid"]
+                    return trial.user_attrs["key"], trial_attr(trial, "worker")["pid"]
             return None
 
         victim, pid = wait_until(checkpointed_worker, 120, "a confirm trial's checkpoint")
@@ -474,7 +474,7 @@ def test_confirm_stage_ledger_is_exact_under_a_worker_kill_and_a_driver_relaunch
     stale = {t.number for t in confirming() if t.state == TrialState.RUNNING}
     assert stale  # the killed driver left confirm trials RUNNING
     retried = next(t for t in confirming() if t.user_attrs["key"] == victim)
-    assert retried.user_attrs["attempts"] == 2 and len(retried.user_attrs["worker_deaths"]) == 1
+    assert retried.user_attrs["attempts"] == 2 and len(trial_attr(retried, "worker_deaths")) == 1
     assert retried.user_attrs["resumed_from"] >= 100
 
     # 3. relaunch the stage to the end: exact, nothing re-chosen, the search untouched
@@ -602,7 +602,7 @@ def test_more_worker_deaths_than_retries_fail_the_trial_and_a_relaunch_reruns_it
     (failed,) = stored_trials(spec.storage_url, "deaths")
     assert failed.state == TrialState.FAIL and failed.user_attrs["outcome"] == "failed"
     assert failed.user_attrs["attempts"] == 2  # the first run and its one retry
-    deaths = failed.user_attrs["worker_deaths"]
+    deaths = trial_attr(failed, "worker_deaths")
     assert len(deaths) == 2 and all("ActorDiedError" in death for death in deaths), deaths
     assert failed.user_attrs["error"] == f"worker died 2 times; last: {deaths[-1]}"
     assert "1 trial failed" in stream.getvalue()

@@ -20,7 +20,7 @@ from agent.config import Outcome, TrialResult
 from agent.metrics import normalized_auc
 from sweeper.halving import HALVING_ATTR, Ladder
 from sweeper.launcher import launch, prepare
-from sweeper.storage import curve_of, open_storage
+from sweeper.storage import curve_of, open_storage, trial_attr
 
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake train below
 
@@ -292,7 +292,7 @@ def test_a_worker_killed_at_the_rung_leaves_the_ledger_exact(tmp_path, local_ray
         def at_rung():  # a trial evaluated at the rung: its worker is writing the pause
             for trial in _trials(url, "rungworker"):
                 if trial.state == TrialState.RUNNING and 200 in trial.intermediate_values:
-                    return trial.user_attrs.get("worker")
+                    return trial_attr(trial, "worker")
             return None
 
         worker = wait_until(at_rung, 240, "a trial at the rung")

@@ -22,7 +22,7 @@ from agent.config import TrialResult
 from agent.metrics import normalized_auc
 from sweeper import cli, launcher
 from sweeper.launcher import launch, prepare
-from sweeper.storage import CURVE_ATTR, StudyStore, curve_of, open_storage
+from sweeper.storage import CURVE_ATTR, StudyStore, curve_of, open_storage, trial_attr
 from sweeper.storage.writer import _this_driver
 
 GRID = [0, 100, 200, 300]  # studies/ci.yaml: env_steps 300, eval_every 100
@@ -56,10 +56,18 @@ def check_ci_study(study: optuna.Study) -> None:
         assert attrs["method"] == attrs["key"].split("/")[0]
         assert (attrs["config_id"], attrs["seed"]) == (0, 0)
         assert attrs["plan_hash"] == study.user_attrs["plan_hash"]
-        assert attrs["worker"]["pid"] > 0
+        worker = trial_attr(trial, "worker")
+        assert worker["pid"] > 0
         # the machine it ran on, for anyone re-running it (agent.machine)
-        assert [m["from_step"] for m in attrs["machines"]] == [0]
-        assert attrs["machines"][0]["kernels"] and attrs["machines"][0]["cpu"]
+        machines = trial_attr(trial, "machines")
+        assert [m["from_step"] for m in machines] == [0]
+        assert machines[0]["kernels"] and machines[0]["cpu"]
+        # the trial's page shows no JSON a person must parse: those values are system
+        # attrs, with words under their keys (sweeper.storage.attrs)
+        shown = {k: v for k, v in attrs.items() if isinstance(v, dict | list)}
+        assert not shown, shown
+        assert attrs["worker"] == f"pid {worker['pid']} on {worker['node']}"
+        assert attrs["machines"].startswith("from step 0: ")
         # the params that vary are trial params, with the method; constants are study attrs
         assert set(trial.params) == {"lr", "method"}
         assert trial.params["method"] == attrs["method"]
@@ -151,7 +159,7 @@ def test_the_image_control_and_the_oracle_are_methods_like_any_other(tmp_path, m
     for trial in trials:
         assert trial.state == TrialState.COMPLETE and curve_of(trial)["step"] == GRID
         assert trial.user_attrs["reward_scale"] > 0  # the spec's default: "auto", measured
-        fit = trial.user_attrs.get("encoder_fit")  # a learned encoder's fit, as it went
+        fit = trial_attr(trial, "encoder_fit")  # a learned encoder's fit, as it went
         assert (fit is not None) == (trial.user_attrs["method"] == "vae")
         assert fit is None or (fit["latent_dim"] == 8 and 0 <= fit["active_dims"] <= 8)
     assert cli.main(["aggregate", str(spec)]) == 0

@@ -17,7 +17,7 @@ from optuna_dashboard._custom_plot_data import get_plotly_graph_objects
 from synthetic_study import write_synthetic_study
 
 from sweeper.aggregate import live
-from sweeper.aggregate.dashboard import COMPARISON_ID, NOTE_BEGIN
+from sweeper.aggregate.dashboard import COMPARISON_ID, NOTE_BEGIN, split_views
 from sweeper.storage import StudyStore, open_storage
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -69,7 +69,10 @@ def test_refresh_saves_what_aggregate_saves(tmp_path):
     store = StudyStore.find(open_storage(url), "syn")
     live.refresh(store)
     figures = get_plotly_graph_objects(store.storage.get_study_system_attrs(store.study_id))
-    assert {COMPARISON_ID, "sweeper-curves-success_rate", "sweeper-auc"} <= set(figures)
+    assert list(figures) == [COMPARISON_ID]
+    assert {"comparison", "curves-success_rate", "auc"} <= set(
+        split_views(json.loads(figures[COMPARISON_ID]))
+    )
     note = get_note(optuna.load_study(study_name="syn", storage=url))
     assert note.startswith(NOTE_BEGIN) and "Ranked by IQM AUC" in note
 
@@ -89,9 +92,10 @@ def test_a_launch_leaves_the_comparison_in_the_dashboard(tmp_path):
     study_id = storage.get_study_id_from_name("ci")
     figures = get_plotly_graph_objects(storage.get_study_system_attrs(study_id))
     values = [t.value for t in optuna.load_study(study_name="ci", storage=url).trials]
-    auc = json.loads(figures["sweeper-auc"])["data"][0]["y"]
+    shown = split_views(json.loads(figures[COMPARISON_ID]))
+    auc = shown["auc"]["data"][0]["y"]
     assert sorted(auc) == pytest.approx(sorted(values))
-    table = json.loads(figures[COMPARISON_ID])["data"][0]["cells"]["values"]
-    assert table[2] == ["1 of 1", "1 of 1"]  # both trials in it
+    table = shown["comparison"]["data"][0]["cells"]["values"]
+    assert table[2] == ["1/1", "1/1"]  # both trials in it
     note = get_note(optuna.load_study(study_name="ci", storage=url))
     assert "Ranked by IQM AUC" in note

@@ -32,6 +32,7 @@ from sweeper.storage import (
     open_storage,
     process_start,
     resolve_url,
+    trial_attr,
 )
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -173,15 +174,57 @@ def test_the_curve_is_a_system_attr_and_an_older_user_attr_curve_still_reads(sql
     curves = [{"step": [0, 10], "success_rate": [0.0, float(n)]} for n in range(2)]
     new = store.add_waiting({"lr": 1e-3}, {"lr": (1e-3,)}, {"key": "m/0/0"})
     store.start(new._trial_id)
-    store.set_attrs(new._trial_id, {"curve": curves[0], "worker": "here"})
+    store.set_attrs(new._trial_id, {"curve": curves[0], "outcome": "here"})
     old = store.add_waiting({"lr": 1e-3}, {"lr": (1e-3,)}, {"key": "m/1/0"})
     store.storage.set_trial_user_attr(old._trial_id, "curve", curves[1])  # as written before
     new, old = store.trials()
-    assert "curve" not in new.user_attrs and new.user_attrs["worker"] == "here"
+    assert "curve" not in new.user_attrs and new.user_attrs["outcome"] == "here"
     assert [curve_of(new), curve_of(old)] == curves
-    rows = read_rows(sqlite_url, "curves")
-    assert rows.curves["trial_id"].tolist() == [new._trial_id]
-    assert json.loads(rows.curves["value_json"][0]) == curves[0]
+    rows = read_rows(sqlite_url, "curves").system_attrs
+    assert rows["trial_id"].tolist() == [new._trial_id] and rows["key"].tolist() == ["curve"]
+    assert json.loads(rows["value_json"][0]) == curves[0]
+
+
+def test_machine_readable_attrs_are_system_attrs_with_words_for_the_trial_page(sqlite_url):
+    """The worker, machines, videos, encoder fit and worker deaths are system attrs (what
+    ``trial_attr`` and ``read_rows`` read), each with a user attr in words under its key
+    (what optuna-dashboard's trial page shows: no JSON to parse); a trial written before,
+    with them as user attrs, reads the same."""
+    from sweeper.aggregate.frame import load_study_frame
+    from sweeper.study import read_rows
+
+    store = StudyStore.open_or_create(open_storage(sqlite_url), "words", {"plan_hash": "h"})
+    machine = {"cpu": "GenuineIntel 6 85", "cpu_name": "Xeon", "kernels": "AVX2"}
+    attrs = {
+        "worker": {"node": "10.0.0.2", "pid": 4242},
+        "machines": [{"from_step": 0, **machine, "torch": "2.13.0+cpu"}],
+        "videos": {"episode-step300.mp4": "0f1e"},
+        "encoder_fit": {"latent_dim": 8, "active_dims": 3, "kl": 0.123456},
+        "worker_deaths": ["ActorDiedError: gone", "no answer in 60 s"],
+    }
+    new = store.add_waiting({"lr": 1e-3}, {"lr": (1e-3,)}, {"key": "vae/0/0", "method": "vae"})
+    store.start(new._trial_id)
+    store.set_attrs(new._trial_id, attrs)
+    old = store.add_waiting({"lr": 1e-3}, {"lr": (1e-3,)}, {"key": "vae/1/0", "method": "vae"})
+    for key, value in attrs.items():  # as written before
+        store.storage.set_trial_user_attr(old._trial_id, key, value)
+    new, old = store.trials()
+    assert {key: trial_attr(new, key) for key in attrs} == attrs
+    assert {key: trial_attr(old, key) for key in attrs} == attrs
+    assert new.user_attrs == {
+        "key": "vae/0/0",
+        "method": "vae",
+        "worker": "pid 4242 on 10.0.0.2",
+        "machines": "from step 0: Xeon (GenuineIntel 6 85), kernels AVX2, torch 2.13.0+cpu",
+        "videos": "episode-step300.mp4 (the trial's artifacts)",
+        "encoder_fit": "latent_dim 8, active_dims 3, kl 0.1235",
+        "worker_deaths": "ActorDiedError: gone; no answer in 60 s",
+    }
+    rows = read_rows(sqlite_url, "words").system_attrs
+    assert sorted(rows["key"]) == sorted(attrs) and set(rows["trial_id"]) == {new._trial_id}
+    frame = load_study_frame(sqlite_url, "words").drop_duplicates("trial")
+    assert frame["fit_active_dims"].tolist() == [3, 3]  # read from both
+    assert frame["fit_kl"].tolist() == pytest.approx([0.123456] * 2)
 
 
 def _lifecycle(url: str) -> None:

@@ -90,8 +90,9 @@ def _build_frame(study_name: str, raw: StudyRows) -> pd.DataFrame:
     attrs_by_trial: dict[int, dict[str, Any]] = {}
     for trial_id, key, value_json in user_attrs.itertuples(index=False):
         attrs_by_trial.setdefault(trial_id, {})[key] = json.loads(value_json)
-    for trial_id, value_json in raw.curves.itertuples(index=False):  # over an older user attr
-        attrs_by_trial.setdefault(trial_id, {})[CURVE_ATTR] = json.loads(value_json)
+    for trial_id, key, value_json in raw.system_attrs.itertuples(index=False):
+        # the curve, the encoder's fit...: over their user attrs, words or written before
+        attrs_by_trial.setdefault(trial_id, {})[key] = json.loads(value_json)
     special = {"FINITE": None, "INF_POS": math.inf, "INF_NEG": -math.inf, "NAN": math.nan}
     auc = {
         t: v if special[kind] is None else special[kind]

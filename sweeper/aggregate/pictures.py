@@ -54,6 +54,7 @@ def final_frames(
     file written, when no trial has a video, e.g. ``videos: none``)."""
     from agent.video import decode_video
     from sweeper.artifacts import ArtifactStore
+    from sweeper.storage import trial_attr
 
     store = ArtifactStore(artifacts)
     study_id = storage.get_study_id_from_name(study_info(frame).name)
@@ -66,7 +67,7 @@ def final_frames(
             continue
         tiles, cells = [], []
         for which, row in best_and_median(mine):
-            found = last_video(by_number[int(row["trial"])].user_attrs.get("videos"))
+            found = last_video(trial_attr(by_number[int(row["trial"])], "videos"))
             if found is None:
                 continue
             artifact_id, fmt, step = found

@@ -44,10 +44,21 @@ def few_trials_warning(table: pd.DataFrame) -> str:
     )
 
 
-def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame, pairs: bool = False) -> str:
+def _named(method: str, controls: tuple[str, ...]) -> str:
+    """A method's name, "(control)" after it when it is one of ``controls``."""
+    return f"{method} (control)" if method in controls else method
+
+
+def table_markdown(
+    table: pd.DataFrame,
+    improvement: pd.DataFrame,
+    pairs: bool = False,
+    controls: tuple[str, ...] = (),
+) -> str:
     """The AUC table (ledger, every statistic with its interval, compute, best trial) and
     the probability-of-improvement matrix with intervals, as Markdown; with ``pairs``, the
-    probabilities as a row per pair of methods instead (``improvement_pairs_markdown``)."""
+    probabilities as a row per pair of methods instead (``improvement_pairs_markdown``).
+    The methods in ``controls`` are named as controls (the study note)."""
     lines = [
         "| method | planned | done | diverged | running | failed | left "
         f"| IQM AUC [{CONFIDENCE:.0%} CI] | mean [CI] | median [CI] | optimality gap [CI] | std "
@@ -70,14 +81,15 @@ def table_markdown(table: pd.DataFrame, improvement: pd.DataFrame, pairs: bool =
         else:
             stats, compute, best = " | ".join("–" * 4), "– | – | –", "–"
         lines.append(
-            f"| {row['method']} | {row['planned']} | {row['done']} | {row['diverged']} "
+            f"| {_named(row['method'], controls)} | {row['planned']} | {row['done']} "
+            f"| {row['diverged']} "
             f"| {row['running']} | {row['failed']} | {row['left']} | {stats} "
             f"| {_fmt(row['std'])} | {compute} | {best} |"
         )
     if warning := few_trials_warning(table):
         lines += ["", warning]
     methods = table["method"].tolist()
-    if pairs and (rows := improvement_pairs_markdown(table, improvement)):
+    if pairs and (rows := improvement_pairs_markdown(table, improvement, controls)):
         lines += [
             "",
             "Probability of improvement P(method > over), paired by SAC configuration and seed, "
@@ -164,18 +176,24 @@ def verdict(table: pd.DataFrame) -> str:
 
 
 def ranking_sentence(
-    table: pd.DataFrame, improvement: pd.DataFrame, random: float | None = None
+    table: pd.DataFrame,
+    improvement: pd.DataFrame,
+    random: float | None = None,
+    controls: tuple[str, ...] = (),
 ) -> str:
     """The ranking in one sentence, from the tables' own evidence: the methods by IQM AUC
     with their intervals, and for each method over the next one the paired probability of
     improvement (the share of paired trials it beats the next one in) with its interval,
-    called a clear lead only when that interval lies above 0.5."""
+    called a clear lead only when that interval lies above 0.5. The methods in
+    ``controls`` are named as controls (the study note)."""
     done = table[table["n"] > 0].sort_values("iqm", ascending=False, kind="stable")
     if done.empty:
         return "No method has a done trial yet, so there is no ranking."
     ranked = list(done.itertuples())
     order = ", ".join(
-        f"{r.method} {_fmt(r.iqm, 2)} [{_fmt(r.iqm_low, 2)}, {_fmt(r.iqm_high, 2)}]" for r in ranked
+        f"{_named(r.method, controls)} {_fmt(r.iqm, 2)} [{_fmt(r.iqm_low, 2)}, "
+        f"{_fmt(r.iqm_high, 2)}]"
+        for r in ranked
     )
     text = f"Ranked by IQM AUC ({CONFIDENCE:.0%} CI): {order}"
     lookup = {(r.method, r.versus): r for r in improvement.itertuples()}
@@ -203,10 +221,13 @@ def ranking_sentence(
     return text + "."
 
 
-def improvement_pairs_markdown(table: pd.DataFrame, improvement: pd.DataFrame) -> str:
+def improvement_pairs_markdown(
+    table: pd.DataFrame, improvement: pd.DataFrame, controls: tuple[str, ...] = ()
+) -> str:
     """The probability of improvement as one line per pair of methods, the better-ranked
     (by IQM AUC) first, in a fixed-width block: readable where the matrix is too wide and
-    a Markdown table's cells run together (optuna-dashboard's note). "" when no pair."""
+    a Markdown table's cells run together (optuna-dashboard's note). "" when no pair. The
+    methods in ``controls`` are named as controls."""
     done = table[table["n"] > 0].sort_values("iqm", ascending=False, kind="stable")
     methods = done["method"].tolist()
     lookup = {(r.method, r.versus): r for r in improvement.itertuples()}
@@ -218,7 +239,8 @@ def improvement_pairs_markdown(table: pd.DataFrame, improvement: pd.DataFrame) -
                 continue
             mark = "*" if r.pairs < MIN_RELIABLE else ""
             interval = f"[{_fmt(r.low, 2)}, {_fmt(r.high, 2)}]"
-            rows.append((x, y, _fmt(r.probability, 2), interval, f"{r.pairs}{mark}"))
+            named = _named(x, controls), _named(y, controls)
+            rows.append((*named, _fmt(r.probability, 2), interval, f"{r.pairs}{mark}"))
     if len(rows) == 1:
         return ""
     widths = [max(len(row[c]) for row in rows) for c in range(len(rows[0]))]

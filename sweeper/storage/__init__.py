@@ -8,6 +8,9 @@ Conventions: docs/architecture.md, "Storage conventions". One file per job:
 - ``errors``: ``StorageError``, ``StudyBusy``, which database errors are outages and which
   say the file is damaged, and the one-line message of each;
 - ``provenance``: the code's revision and the package versions a study records;
+- ``attrs``: which trial attrs are Optuna system attrs (the curve, the worker, machines,
+  videos, the encoder's fit, worker deaths), what the trial's page shows of them in words,
+  and ``trial_attr``, which reads them back, from studies written before too;
 - ``ledger``: the ledger rules, pure functions over (key, state, outcome): a key's current
   trial, its ledger column, the per-method counts;
 - ``writer``: ``StudyStore`` (the driver's claim, heartbeats, sync and trial writes, each
@@ -20,6 +23,13 @@ are re-exported here; a module constant (``DRIVER_STALE_SECONDS``, ``SQLITE_TIME
 is read in its own module, so a test that changes one sets it there.
 """
 
+from sweeper.storage.attrs import (
+    CURVE_ATTR,
+    SYSTEM_ATTRS,
+    curve_of,
+    describe_machine,
+    trial_attr,
+)
 from sweeper.storage.errors import (
     StorageError,
     StudyBusy,
@@ -64,7 +74,6 @@ from sweeper.storage.urls import (
     sqlite_path,
 )
 from sweeper.storage.writer import (
-    CURVE_ATTR,
     DRIVER_STALE_SECONDS,
     OBJECTIVE_NAME,
     RETRY_MAX_DELAY,
@@ -72,7 +81,6 @@ from sweeper.storage.writer import (
     Heartbeat,
     StudyStore,
     busy_message,
-    curve_of,
     driver_alive,
     json_safe,
     name_objective,
@@ -89,6 +97,7 @@ __all__ = [
     "RETRY_MAX_DELAY",
     "SQLITE_TIMEOUT",
     "STORAGE_GRACE",
+    "SYSTEM_ATTRS",
     "VERSIONED_PACKAGES",
     "Counts",
     "Heartbeat",
@@ -110,6 +119,7 @@ __all__ = [
     "damaged_error",
     "database_cause",
     "database_error",
+    "describe_machine",
     "driver_alive",
     "engine_arguments",
     "is_damaged",
@@ -131,5 +141,6 @@ __all__ = [
     "retry_outages",
     "sqlite_path",
     "tally",
+    "trial_attr",
     "write_error",
 ]

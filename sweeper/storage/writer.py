@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from agent.config import Outcome
+from sweeper.storage.attrs import SYSTEM_ATTRS, shown
 from sweeper.storage.errors import (
     RESUME,
     StorageError,
@@ -61,19 +62,6 @@ def json_safe(values: Iterable[float]) -> list[float | None]:
 
 #: the name optuna-dashboard shows for the study's objective (not "Objective 0")
 OBJECTIVE_NAME = "AUC"
-
-#: a trial's curve: ``{"step": [...], metric: [...], ...}``, every metric at every
-#: evaluation (the success rate is also each step's intermediate value)
-CURVE_ATTR = "curve"
-#: trial attrs kept as Optuna system attrs, which optuna-dashboard does not show: the curve
-#: as a user attr filled a cell of its trial table with 1,024 characters of JSON (each row
-#: ~330 px tall). Trials written before keep it as a user attr; ``curve_of`` reads both.
-SYSTEM_ATTRS = frozenset({CURVE_ATTR})
-
-
-def curve_of(trial: FrozenTrial) -> dict[str, list] | None:
-    """The trial's curve (``CURVE_ATTR``), or None before its first evaluation."""
-    return trial.system_attrs.get(CURVE_ATTR) or trial.user_attrs.get(CURVE_ATTR)
 
 
 def name_objective(study) -> None:
@@ -507,10 +495,14 @@ class StudyStore:
 
     @retried
     def set_attrs(self, trial_id: int, attrs: Mapping[str, Any]) -> None:
-        """Set attrs of a trial that is not finished: user attrs, but ``SYSTEM_ATTRS``."""
+        """Set attrs of a trial that is not finished: user attrs, but ``SYSTEM_ATTRS`` as
+        system attrs, each with a user attr in words under its key (``shown``: what the
+        trial's page shows; ``sweeper.storage.attrs.trial_attr`` reads the value)."""
         for key, value in attrs.items():
             if key in SYSTEM_ATTRS:
                 self.storage.set_trial_system_attr(trial_id, key, value)
+                if (words := shown(key, value)) is not None:
+                    self.storage.set_trial_user_attr(trial_id, key, words)
             else:
                 self.storage.set_trial_user_attr(trial_id, key, value)
 
