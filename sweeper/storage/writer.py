@@ -283,7 +283,7 @@ class StudyStore:
         (``sweeper.storage.migrate``), in one transaction holding the study's lock;
         StudyBusy while a driver runs the study (it writes in the format its code knows:
         ``sweeper publish`` upgrades its copy, which no driver runs)."""
-        from sweeper.storage.migrate import rewrite  # it reads CURVE_ATTR from here
+        from sweeper.storage.migrate import rewrite
 
         with self._locked() as connection:
             driver = _read_study_attr(connection, self.study_id, "driver")
