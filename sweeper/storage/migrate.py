@@ -19,9 +19,9 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from sweeper.storage.attrs import CURVE_ATTR as CURVE
 from sweeper.storage.errors import StorageError
 from sweeper.storage.params import METHOD_PARAM, applies_to, is_fixed, method_choices
-from sweeper.storage.attrs import CURVE_ATTR as CURVE
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import Connection
