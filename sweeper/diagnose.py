@@ -65,6 +65,30 @@ class _DefaultsHelp(HelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
+#: the options that size or place an analysis: ``Settings`` field, type, help (the default
+#: is the field's)
+SIZES: tuple[tuple[str, type, str], ...] = (
+    ("episodes", int, "random-agent episodes"),
+    ("gradient_states", int, "Algorithm 1 states"),
+    ("directions", int, "Algorithm 1 directions"),
+    ("alpha", float, "Algorithm 1 step size"),
+    ("pairs", int, "(state, goal) pairs"),
+    ("grid_size", int, "topology grid side"),
+    ("variance_states", int, "arm-vs-object states (fetch_push only)"),
+    ("precision_goals", int, "near-goal precision: goals, each from the env's reset"),
+    ("precision_states", int, "near-goal precision: states uniform in a ball around each goal"),
+    ("precision_radius", float, "near-goal precision: the ball's radius"),
+    ("success_radius", float,
+     "near-goal precision: a state this close to the goal succeeds (Fetch: 0.05 m)"),
+    ("descent_episodes", int, "greedy descent: episodes, each from the env's reset"),
+    ("descent_horizon", int, "greedy descent: steps per episode"),
+    ("descent_candidates", int,
+     "greedy descent: actions tried in a copy of the simulator at each step"),
+    ("descent_step", float,
+     "greedy descent: the actions' size, a fraction of the action box's half-width"),
+)  # fmt: skip
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``sweeper diagnose`` (it takes no spec)."""
     parser.formatter_class = _DefaultsHelp
@@ -98,16 +122,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument(
-        "--episodes", type=int, default=DEFAULTS.episodes, help="random-agent episodes"
-    )
-    parser.add_argument(
-        "--gradient-states", type=int, default=DEFAULTS.gradient_states, help="Algorithm 1 states"
-    )
-    parser.add_argument(
-        "--directions", type=int, default=DEFAULTS.directions, help="Algorithm 1 directions"
-    )
-    parser.add_argument("--alpha", type=float, default=DEFAULTS.alpha, help="Algorithm 1 step size")
-    parser.add_argument(
         "--start",
         choices=START_MODES,
         default=DEFAULTS.start,
@@ -122,51 +136,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="Algorithm 1: redraw pairs whose goal is closer than this to the start (0: keep "
         "every pair); recorded in gradient.csv and summary.csv when used",
     )
-    parser.add_argument("--pairs", type=int, default=DEFAULTS.pairs, help="(state, goal) pairs")
-    parser.add_argument(
-        "--grid-size", type=int, default=DEFAULTS.grid_size, help="topology grid side"
-    )
     parser.add_argument(
         "--grid-dims", default=None, help="two state names or indices (default: first two)"
     )
-    parser.add_argument(
-        "--variance-states",
-        type=int,
-        default=DEFAULTS.variance_states,
-        help="arm-vs-object states (fetch_push only)",
-    )
-    parser.add_argument(
-        "--precision-goals", type=int, default=DEFAULTS.precision_goals,
-        help="near-goal precision: goals, each from the env's reset",
-    )  # fmt: skip
-    parser.add_argument(
-        "--precision-states", type=int, default=DEFAULTS.precision_states,
-        help="near-goal precision: states uniform in a ball around each goal",
-    )  # fmt: skip
-    parser.add_argument(
-        "--precision-radius", type=float, default=DEFAULTS.precision_radius,
-        help="near-goal precision: the ball's radius",
-    )  # fmt: skip
-    parser.add_argument(
-        "--success-radius", type=float, default=DEFAULTS.success_radius,
-        help="near-goal precision: a state this close to the goal succeeds (Fetch: 0.05 m)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--descent-episodes", type=int, default=DEFAULTS.descent_episodes,
-        help="greedy descent: episodes, each from the env's reset",
-    )  # fmt: skip
-    parser.add_argument(
-        "--descent-horizon", type=int, default=DEFAULTS.descent_horizon,
-        help="greedy descent: steps per episode",
-    )  # fmt: skip
-    parser.add_argument(
-        "--descent-candidates", type=int, default=DEFAULTS.descent_candidates,
-        help="greedy descent: actions tried in a copy of the simulator at each step",
-    )  # fmt: skip
-    parser.add_argument(
-        "--descent-step", type=float, default=DEFAULTS.descent_step,
-        help="greedy descent: the actions' size, a fraction of the action box's half-width",
-    )  # fmt: skip
+    for name, kind, text in SIZES:
+        parser.add_argument(
+            "--" + name.replace("_", "-"), type=kind, default=getattr(DEFAULTS, name), help=text
+        )
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
