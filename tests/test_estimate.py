@@ -114,7 +114,8 @@ def test_sweeper_plan_calibrates_a_new_study_and_measures_a_launched_one(
     fresh = f"sqlite:///{tmp_path / 'none.db'}"
     assert cli.main(["plan", str(ci_study.spec), "--storage", fresh]) == 0
     out = capsys.readouterr().out
-    rows = {line.split()[0]: line.split() for line in out.splitlines() if line}
+    table = out.split("gradient samples per env step")[0]  # the per-method table above it
+    rows = {line.split()[0]: line.split() for line in table.splitlines() if line}
     # method, trials, env steps, done, then the estimate and its source
     assert rows["linear"][1:4] == ["1", "300", "0"] and rows["linear"][-1] == "calibrated"
     assert "left: 2 of 2 trials" in out and "calibrated in" in out
@@ -122,7 +123,8 @@ def test_sweeper_plan_calibrates_a_new_study_and_measures_a_launched_one(
 
     assert cli.main(["plan", str(ci_study.spec), "--storage", ci_study.storage_url]) == 0
     out = capsys.readouterr().out
-    rows = {line.split()[0]: line.split() for line in out.splitlines() if line}
+    table = out.split("gradient samples per env step")[0]
+    rows = {line.split()[0]: line.split() for line in table.splitlines() if line}
     assert rows["pixel"][3] == "1" and rows["pixel"][-2:] == ["(1", "finished)"]
     assert "left: 0 of 2 trials" in out and "calibrated in" not in out
 
