@@ -359,7 +359,7 @@ def test_stopping_launch_reaches_sweeper_then_leaves_the_cluster(config, tmp_pat
     try:
         wait_until(started.exists, 10, "the sweeper stand-in to start", interval=0.02)
         shell.send_signal(getattr(signal, signal_name))
-        assert shell.wait(timeout=10) == 130
+        assert shell.wait(timeout=60) == 130  # a busy machine may take seconds
     finally:
         shell.kill()
     assert (tmp_path / "signals").read_text() == "TERM\n"

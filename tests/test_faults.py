@@ -25,6 +25,7 @@ from conftest import assert_uninterrupted_curve, wait_until, write_ci_spec
 from optuna.trial import TrialState
 
 from agent import train
+from agent.checkpoint import saved_step
 from agent.config import TrialResult
 from sweeper.launcher import launch, prepare, study_attrs
 from sweeper.plan import build_plan
@@ -135,7 +136,9 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, loca
         tmp_path / "spec.yaml",
         study="driver",
         trials_per_method=2,
-        budget={"env_steps": 200},
+        # long enough that the second driver still has a trial in flight when its Ctrl-C
+        # arrives on a busy machine (at 200 steps it could finish them all first)
+        budget={"env_steps": 500},
         storage=url,
         checkpoints=str(tmp_path / "checkpoints"),
     )
@@ -174,6 +177,7 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, loca
     # a dead driver's trial is re-run from its checkpoint, not from step 0
     resumable = {t.user_attrs["key"] for t in left if checkpoints_of(t.user_attrs["key"])}
     assert resumable
+    saved = {key: saved_step(str(checkpoints_of(key)[0].parent)) for key in resumable}
 
     # 2. Relaunch, then Ctrl-C it while trials run: exit 130, in-flight trials interrupted.
     second = start_driver(spec, local_ray, log)
@@ -214,9 +218,10 @@ def test_driver_killed_then_ctrl_c_then_relaunch_finishes_exactly(tmp_path, loca
             successor = trials[trial.user_attrs["superseded_by"]]
             assert successor.user_attrs["key"] == trial.user_attrs["key"]
             assert trial.number in successor.user_attrs["supersedes"]
-    assert all(curve_of(t)["step"] == [0, 100, 200] for t in by_key.values())
+    assert all(curve_of(t)["step"] == [0, 100, 200, 300, 400, 500] for t in by_key.values())
     for key in resumable:
-        assert by_key[key].user_attrs["resumed_from"] == 100, key  # its checkpoint's step
+        # the step of the checkpoint the killed driver's trial left
+        assert by_key[key].user_attrs["resumed_from"] == saved[key], key
 
 
 RACER = """
