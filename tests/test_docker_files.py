@@ -354,7 +354,12 @@ def test_stopping_launch_reaches_sweeper_then_leaves_the_cluster(config, tmp_pat
         f"touch {started}\nwhile :; do sleep 0.05; done\n",
     )
     shell = subprocess.Popen(
-        [*entrypoint(config, "launch"), "studies/ci.yaml"], env=launch_env(config, tmp_path)
+        [*entrypoint(config, "launch"), "studies/ci.yaml"],
+        env=launch_env(config, tmp_path),
+        # as in a container: SIGINT at its default, even when pytest itself was started in
+        # the background of a shell without job control, which ignores it (and a shell
+        # cannot trap a signal ignored on entry)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         wait_until(started.exists, 10, "the sweeper stand-in to start", interval=0.02)
