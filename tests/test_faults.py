@@ -121,6 +121,9 @@ def start_driver(spec: Path, address: str, log: Path) -> subprocess.Popen:
         stderr=subprocess.STDOUT,
         start_new_session=True,
         cwd=spec.parent,
+        # Ctrl-C at its default, as from a terminal, even when pytest runs with SIGINT
+        # ignored (a background job of a shell without job control), which a child inherits
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
 
 
