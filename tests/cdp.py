@@ -29,6 +29,16 @@ from typing import Any
 OPENER = urllib.request.build_opener(urllib.request.ProxyHandler({}))
 
 
+def stop(process: subprocess.Popen) -> None:
+    """End a server or browser process: SIGTERM, then SIGKILL after 15 s."""
+    process.terminate()
+    try:
+        process.wait(timeout=15)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
 def chromium() -> str | None:
     """The Chromium binary on PATH, or None."""
     for name in ("chromium", "chromium-browser", "google-chrome"):
@@ -196,10 +206,5 @@ def browser(width: int = 1600, height: int = 1200) -> Iterator[Page]:
     finally:
         if page is not None:
             page.close()
-        process.terminate()
-        try:
-            process.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        stop(process)
         shutil.rmtree(profile, ignore_errors=True)

@@ -27,7 +27,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from cdp import OPENER, Page, browser, chromium
+from cdp import OPENER, Page, browser, chromium, stop
 from conftest import running_dashboard
 
 from sweeper.aggregate.dashboard import COMPARISON_ID, CONTROLS
@@ -224,12 +224,7 @@ def plain_optuna_dashboard(url: str, artifacts: Path, timeout: float = 60) -> It
                 time.sleep(0.5)
         yield base
     finally:
-        process.terminate()
-        try:
-            process.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        stop(process)
 
 
 def test_plain_optuna_dashboard_on_the_published_study_puts_the_comparison_first(published):
