@@ -35,7 +35,7 @@ def main() -> None:
     import optuna
     from synthetic_study import write_synthetic_study
 
-    from sweeper.aggregate import aggregate, load_study_frame
+    from sweeper.results.cli_aggregate import aggregate, load_study_frame
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     name = f"bench_{args.trials}x{args.points}"

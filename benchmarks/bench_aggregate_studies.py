@@ -41,7 +41,7 @@ def main() -> None:
     import optuna
     from synthetic_study import write_synthetic_study
 
-    from sweeper.aggregate.combined import aggregate_studies
+    from sweeper.results._combined import aggregate_studies
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     url = f"sqlite:///{args.db}"

@@ -68,7 +68,7 @@ def run_study(
     """Launch the study with ``concurrency`` trials at once; return its figures."""
     import optuna
 
-    from sweeper.spec import load_yaml
+    from sweeper.spec._models import load_yaml
 
     study = f"bench_concurrency_c{concurrency}"
     spec = load_yaml((REPO / "studies" / "ci.yaml").read_text())  # tiny point_reach trials

@@ -55,10 +55,10 @@ from agent.envs.base import EPISODE_STEPS
 from agent.machine import describe
 from agent.metrics import evaluation_grid
 from agent.sac import SAC
-from sweeper.estimate import format_duration, makespan
-from sweeper.plan import PlanEntry, build_plan, run_order
-from sweeper.spec import load_spec
-from sweeper.text import plural
+from sweeper.plan._entries import PlanEntry, build_plan, run_order
+from sweeper.plan._estimate import format_duration, makespan
+from sweeper.spec._models import load_spec
+from sweeper.spec._words import plural
 
 SPEC = Path(__file__).resolve().parent.parent / "studies" / "fetch_reach.yaml"
 EVAL_EPISODES = 2  # per evaluation of a measured trial (its grid: every seed_steps)

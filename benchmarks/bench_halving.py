@@ -34,7 +34,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from sweeper import halving  # noqa: E402
+from sweeper.plan import _halving as halving  # noqa: E402
+from sweeper.spec import DEFAULT_KEEP, default_rungs, rungs_at  # noqa: E402
 
 BUDGET, EVAL_EVERY = 20_000, 1_000
 WORLDS = ("aligned", "independent", "late_bloomers")
@@ -79,7 +80,7 @@ def study_curves(storage: str, study: str) -> tuple[halving.Curves, list[int], i
     """The search curves of a study's configurations that every method has finished (every
     seed; a study still running has done some, as its keys run round by round), those
     configurations, how many the plan has, and the spec's seed steps."""
-    from sweeper.aggregate.frame import load_study_frame, scored, stage_frame, study_info
+    from sweeper.results._frame import load_study_frame, scored, stage_frame, study_info
 
     frame = load_study_frame(storage, study)
     attrs = study_info(frame).attrs
@@ -109,11 +110,11 @@ def study_schedules(
     inside the seed phase."""
 
     def on_grid(*fractions: float) -> tuple[int, ...]:
-        return halving.rungs_at(fractions, budget, grid, seed_steps)
+        return rungs_at(fractions, budget, grid, seed_steps)
 
     return [
-        (halving.default_rungs(budget, grid, seed_steps), halving.DEFAULT_KEEP),
-        (on_grid(1 / 4), halving.DEFAULT_KEEP),
+        (default_rungs(budget, grid, seed_steps), DEFAULT_KEEP),
+        (on_grid(1 / 4), DEFAULT_KEEP),
         (on_grid(1 / 10, 1 / 4), 0.5),
     ]
 

@@ -1,4 +1,4 @@
-"""Time one refresh of the dashboard figures a launch makes (``sweeper.aggregate.live``).
+"""Time one refresh of the dashboard figures a launch makes (``sweeper.results._live``).
 
     .venv/bin/python benchmarks/bench_live_figures.py [--methods 8] [--configs 3] \
         [--seeds 2] [--points 16] [--repeats 3]
@@ -34,7 +34,7 @@ def main() -> None:
     import optuna
     from synthetic_study import write_synthetic_study
 
-    from sweeper.aggregate.live import refresh
+    from sweeper.results._live import refresh
     from sweeper.storage import StudyStore, open_storage
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)

@@ -30,8 +30,8 @@ import argparse
 import dataclasses
 
 import agent
-from sweeper.plan import build_plan
-from sweeper.spec import load_spec
+from sweeper.plan._entries import build_plan
+from sweeper.spec._models import load_spec
 
 
 def main() -> None:

@@ -29,10 +29,10 @@ def main() -> None:
     from agent.trial import build_encoder
     from encoders import encoder_names
     from encoders.registry import encoder_class
-    from sweeper.aggregate.frame import load_study_frame, trial_rows
-    from sweeper.plan import build_plan
-    from sweeper.spec import load_spec
-    from sweeper.study import stored_files
+    from sweeper.plan._entries import build_plan
+    from sweeper.results._frame import load_study_frame, trial_rows
+    from sweeper.spec._models import load_spec
+    from sweeper.storage._open import stored_files
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("spec")

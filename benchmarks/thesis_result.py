@@ -22,7 +22,7 @@ fewer than 5 trials or pairs says so.
 With the budget study (``studies/fetch_reach_budget.yaml``; default its published database,
 ``docs/studies/fetch_reach_budget/study.db``, which may not exist yet: then one line says
 so), the two "solves" claims are judged at every gradient budget the studies ran, joined as
-``sweeper aggregate`` joins them (``sweeper.aggregate.budget``: the same configurations and
+``sweeper aggregate`` joins them (``sweeper.results._budget``: the same configurations and
 seeds), each with its condition: "PIXEL solves FetchReach: holds at 1/4 of A.1's gradient
 samples, 15k steps, 4 trials". The rule (``solved_at``) is printed with them.
 """
@@ -92,9 +92,9 @@ def budget_claims(frame, storage: str, study: str, seed: int = 0) -> list[str]:
     """The "solves" claims at every setting of the budget join of ``frame`` (the
     published study, read) with ``study`` at ``storage``; one line when that study
     cannot be read."""
-    from sweeper.aggregate.budget import budget_table, join_studies, study_trials
-    from sweeper.aggregate.frame import load_study_frame, random_success, stage_frame, study_info
-    from sweeper.aggregate.report import MIN_RELIABLE, _fmt
+    from sweeper.results._budget import budget_table, join_studies, study_trials
+    from sweeper.results._frame import load_study_frame, random_success, stage_frame, study_info
+    from sweeper.results._report import MIN_RELIABLE, _fmt
 
     path = sqlite_file(storage)
     if path is not None and not path.is_file():
@@ -151,16 +151,16 @@ def judge(intervals: Sequence[tuple[float, float]]) -> str:
 def main(argv: Sequence[str] | None = None) -> None:
     import numpy as np
 
-    from sweeper import stats
-    from sweeper.aggregate.frame import (
+    from sweeper.results import _stats as stats
+    from sweeper.results._frame import (
         load_study_frame,
         random_success,
         scored,
         stage_frame,
         study_info,
     )
-    from sweeper.aggregate.report import MIN_RELIABLE, _fmt
-    from sweeper.aggregate.tables import study_tables
+    from sweeper.results._report import MIN_RELIABLE, _fmt
+    from sweeper.results._tables import study_tables
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--storage", default=STORAGE)

@@ -4,7 +4,7 @@ default and default search choices (thesis appendix A.1).
 ``hparam`` declares a field; ``Hyperparameters`` is the base of a dataclass of them, which
 checks every field at construction. ``agent.config.SACConfig`` and the encoders' option
 classes below are such dataclasses; the sweeper derives a spec's search spaces from them
-(``sweeper.spec_space.search_space``), with the same types and bounds (``value_type``). This
+(``sweeper.spec._space.search_space``), with the same types and bounds (``value_type``). This
 module imports no torch: the sweep driver checks specs with it.
 
 Adding a hyperparameter is one ``hparam`` field here (or in ``SACConfig``) plus its use.

@@ -16,8 +16,7 @@ import sys
 from dataclasses import dataclass
 from enum import Enum
 
-from sweeper.spec import SpecError, StudySpec, load_spec
-from sweeper.text import HelpFormatter
+from sweeper.spec import HelpFormatter, SpecError, StudySpec, load_spec
 
 
 class Specs(Enum):
@@ -36,30 +35,35 @@ class Command:
 
 
 COMMANDS: dict[str, Command] = {
-    "launch": Command("sweeper.launch", "run (or resume) a study from a YAML spec"),
+    "launch": Command("sweeper.run.cli_launch", "run (or resume) a study from a YAML spec"),
     "confirm": Command(
-        "sweeper.confirm",
+        "sweeper.run.cli_confirm",
         "re-run each method's top-K configurations on fresh seeds (confirmation stage)",
     ),
     "plan": Command(
-        "sweeper.show_plan", "the plan before it runs: trials per method and their cost here"
+        "sweeper.plan.cli_plan", "the plan before it runs: trials per method and their cost here"
     ),
     "status": Command(
-        "sweeper.status", "per-method ledger of a study: done, running, failed, left"
+        "sweeper.results.cli_status", "per-method ledger of a study: done, running, failed, left"
     ),
     "publish": Command(
-        "sweeper.publish",
+        "sweeper.results.cli_publish",
         "copy a study with its ledger, videos and report into a folder (docs/studies/<study>)",
     ),
     "rerun": Command(
-        "sweeper.rerun", "run one recorded trial again and compare its curve with the record"
+        "sweeper.run.cli_rerun",
+        "run one recorded trial again and compare its curve with the record",
     ),
     "dashboard": Command("sweeper.dashboard", "open optuna-dashboard on a study's storage"),
     "aggregate": Command(
-        "sweeper.aggregate", "per-method curves, AUC table, figures and report", Specs.MANY
+        "sweeper.results.cli_aggregate",
+        "per-method curves, AUC table, figures and report",
+        Specs.MANY,
     ),
     "diagnose": Command(
-        "sweeper.diagnose", "encoder diagnostics (thesis chapter 5) on an env", Specs.NONE
+        "sweeper.diagnose.cli_diagnose",
+        "encoder diagnostics (thesis chapter 5) on an env",
+        Specs.NONE,
     ),
 }
 

@@ -1,10 +1,10 @@
 """``sweeper dashboard SPEC``: serve optuna-dashboard on the study's storage.
 
 The server reads the same database the driver writes (SQLite in WAL mode, so a live study
-can be watched), and shows what the driver (while a launch runs, ``sweeper.aggregate.live``)
+can be watched), and shows what the driver (while a launch runs, ``sweeper.results._live``)
 and ``sweeper aggregate`` saved into the study: the comparison table and the per-method
 curves and AUC figures, and the comparison in the study note; each trial's page
-plays its episode videos (the study's artifact store, ``sweeper.artifacts``). It binds to
+plays its episode videos (the study's artifact store, ``sweeper.storage._artifacts``). It binds to
 127.0.0.1 by default: the dashboard can edit notes and delete studies, so expose it
 beyond this machine only on purpose (``--host 0.0.0.0``). Ctrl-C or SIGTERM stops it.
 """
@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
 #: optuna-dashboard lists a study's plotly figures in the order a Python set of their ids
 #: iterates, which follows the process's string-hash seed, so it changed at every start.
-#: The sweep now saves one figure (``sweeper.aggregate.dashboard.COMPARISON_ID``), whose
+#: The sweep now saves one figure (``sweeper.results._dashboard_card.COMPARISON_ID``), whose
 #: place needs no seed; a study whose figures were saved before, six of them, until it is
 #: aggregated again, shows them under this seed with the comparison table first
 #: (``sweeper dashboard`` runs under it)
@@ -60,8 +60,7 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     """``sweeper dashboard``: serve until stopped; exit 0, or 2 when there is no study to
     show (no database file, an empty database, no such study), the storage cannot be read,
     or the address cannot be listened on."""
-    from sweeper.artifacts import artifact_location
-    from sweeper.study import open_study
+    from sweeper.storage import artifact_location, open_study
 
     try:
         artifacts = artifact_location(spec)
@@ -91,7 +90,7 @@ def serve(
     """Serve optuna-dashboard for ``storage_url`` until Ctrl-C or SIGTERM; return 0.
 
     ``ready(url)`` is called with the study's page once the server listens (default: print
-    it on stdout). ``artifacts`` is the study's artifact location (``sweeper.artifacts``):
+    it on stdout). ``artifacts`` is the study's artifact location (``sweeper.storage._artifacts``):
     the trial pages then play the episode videos. Raises ValueError when the storage does
     not hold ``study_name``.
     """
@@ -100,8 +99,7 @@ def serve(
 
     import optuna_dashboard
 
-    from sweeper.artifacts import ArtifactStore
-    from sweeper.study import open_study
+    from sweeper.storage import ArtifactStore, open_study
 
     class Server(ThreadingMixIn, WSGIServer):
         daemon_threads = True  # a slow browser request never blocks shutdown

@@ -1,4 +1,4 @@
-"""Write a synthetic study that follows docs/architecture.md "Storage conventions".
+"""Write a synthetic study that follows docs/contracts.md "Storage conventions".
 
 Used by the aggregation tests and ``benchmarks/bench_aggregate.py`` so they need no sweep.
 Curves are made-up but deterministic given ``seed``; the AUC stored as the trial value is
@@ -16,7 +16,7 @@ from optuna.trial import TrialState
 
 from agent.metrics import normalized_auc
 
-#: metric keys reported by a sawyer_door trial (docs/architecture.md, "One trial")
+#: metric keys reported by a sawyer_door trial (docs/contracts.md, "One trial")
 DOOR_METRICS = (
     "success_rate",
     "angle_success_rate",
@@ -180,11 +180,11 @@ def write_planned_study(
     trial params), then complete every trial as a worker does, so a join over studies sees
     what a real one would. ``final_success(key)``: the trial's last success rate (its curve
     rises linearly to it over the spec's evaluation grid); ``skip``: keys left WAITING."""
-    from sweeper.plan import build_plan
+    from sweeper.plan._entries import build_plan
     from sweeper.storage import StudyStore, open_storage
 
     plan = build_plan(spec)
-    attrs = {  # as sweeper.launcher.study_attrs, less the provenance
+    attrs = {  # as sweeper.run._launch.study_attrs, less the provenance
         "spec": spec.model_dump(mode="json"),
         "plan_hash": plan.hash,
         "plan": plan.keys(),

@@ -270,7 +270,7 @@ def test_every_env_end_to_end(env: str, method: str) -> None:
     assert result.steps == (0, 50) and result.outcome == "completed"
     assert all(len(v) == 2 for v in result.metrics.values())
     assert "success_rate" in result.metrics
-    if env == "sawyer_door":  # both door metrics, as docs/architecture.md names them
+    if env == "sawyer_door":  # both door metrics, as docs/contracts.md names them
         door = {"angle_success_rate", "hand_success_rate", "final_angle_distance"}
         assert door | {"final_hand_distance"} <= set(result.metrics)
 

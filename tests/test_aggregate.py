@@ -18,9 +18,17 @@ from optuna_dashboard import get_note, save_note
 from synthetic_study import Special, write_synthetic_study
 
 from agent.metrics import normalized_auc
-from sweeper import aggregate as aggregate_command
 from sweeper import cli
-from sweeper.aggregate import (
+from sweeper.results import cli_aggregate as aggregate_command
+from sweeper.results._stats import (
+    SUMMARIES,
+    Group,
+    iqm,
+    probability_of_improvement,
+    several,
+    stratified_bootstrap,
+)
+from sweeper.results.cli_aggregate import (
     NOTE_BEGIN,
     NOTE_END,
     aggregate,
@@ -33,15 +41,7 @@ from sweeper.aggregate import (
     replace_note_section,
     study_info,
 )
-from sweeper.spec import load_spec
-from sweeper.stats import (
-    SUMMARIES,
-    Group,
-    iqm,
-    probability_of_improvement,
-    several,
-    stratified_bootstrap,
-)
+from sweeper.spec._models import load_spec
 from sweeper.storage import current_trials, curve_of, ledger
 
 METHODS = ("pixel", "linear", "vae")
@@ -293,7 +293,7 @@ def test_ci_study_aggregates_from_its_storage(ci_study, ci_aggregate):
 
 
 def test_small_samples_are_named_below_five_trials_or_pairs(synthetic):
-    from sweeper.aggregate.report import few_trials_warning
+    from sweeper.results._report import few_trials_warning
 
     table = pd.DataFrame({"method": ["a", "b", "c"], "n": [5, 4, 0]})
     assert few_trials_warning(table) == (
@@ -426,7 +426,7 @@ def test_compute_per_method_sums_the_trials_seconds(synthetic):
 def test_dashboard_names_the_objective_and_holds_the_new_figures(synthetic):
     from optuna_dashboard._custom_plot_data import get_plotly_graph_objects
 
-    from sweeper.aggregate.dashboard import COMPARISON_ID, split_views
+    from sweeper.results._dashboard_card import COMPARISON_ID, split_views
 
     url, _ = synthetic
     study = optuna.load_study(study_name="syn", storage=url)
@@ -447,14 +447,14 @@ def test_the_dashboard_card_opens_on_the_comparison_names_the_controls_and_the_b
     from optuna_dashboard import save_plotly_graph_object
     from optuna_dashboard._custom_plot_data import get_plotly_graph_objects
 
-    from sweeper.aggregate.dashboard import (
+    from sweeper.results._dashboard_card import (
         COMPARISON_ID,
         HIDDEN_DOMAIN,
         save_to_dashboard,
         split_views,
     )
-    from sweeper.aggregate.frame import by_auc, scored, trial_rows
-    from sweeper.aggregate.tables import study_tables
+    from sweeper.results._frame import by_auc, scored, trial_rows
+    from sweeper.results._tables import study_tables
 
     url = f"sqlite:///{tmp_path / 'study.db'}"
     fates = Special(diverged="pixel/0/0", reaped="pixel/1/0", failed="vae/1/0", running="vae/0/1")
@@ -503,7 +503,7 @@ def test_the_dashboard_card_opens_on_the_comparison_names_the_controls_and_the_b
 
 
 def test_the_dashboard_trial_panel_spreads_a_large_method_over_its_auc_ranks():
-    from sweeper.aggregate.dashboard import TRIALS_PER_PANEL, _panel_trials
+    from sweeper.results._dashboard_card import TRIALS_PER_PANEL, _panel_trials
 
     few = pd.DataFrame({"trial": range(5), "auc": [0.1, 0.5, np.nan, 0.3, 0.2]})
     assert _panel_trials(few) is few
@@ -517,8 +517,8 @@ def test_the_dashboard_trial_panel_spreads_a_large_method_over_its_auc_ranks():
 
 # ---- the report and the dashboard as a reader meets them (issue 22) ----------------------
 def test_best_trial_ties_go_to_the_lower_trial_number_everywhere(synthetic):
-    from sweeper.aggregate.frame import scored, trial_rows
-    from sweeper.aggregate.pictures import best_and_median
+    from sweeper.results._frame import scored, trial_rows
+    from sweeper.results._pictures import best_and_median
 
     url, _ = synthetic
     frame = load_study_frame(url, "syn")
@@ -532,9 +532,9 @@ def test_best_trial_ties_go_to_the_lower_trial_number_everywhere(synthetic):
 
 
 def test_curve_bands_are_clipped_and_the_random_agent_is_drawn(tmp_path):
-    from sweeper.aggregate.dashboard import COMPARISON_ID, save_to_dashboard, split_views
-    from sweeper.aggregate.figures import clip_band
-    from sweeper.aggregate.tables import study_tables
+    from sweeper.results._dashboard_card import COMPARISON_ID, save_to_dashboard, split_views
+    from sweeper.results._figures import clip_band
+    from sweeper.results._tables import study_tables
 
     low, high = clip_band("success_rate", np.array([-0.2, 0.5]), np.array([0.7, 1.3]))
     assert low.tolist() == [0.0, 0.5] and high.tolist() == [0.7, 1.0]
@@ -574,7 +574,7 @@ def test_curve_bands_are_clipped_and_the_random_agent_is_drawn(tmp_path):
 
 
 def test_the_report_explains_its_ranking_from_its_own_tables(synthetic):
-    from sweeper.aggregate.report import ranking_sentence
+    from sweeper.results._report import ranking_sentence
 
     url, out = synthetic
     table = pd.read_csv(out / "auc_table.csv")
@@ -608,7 +608,7 @@ def test_aggregate_says_how_many_files_it_wrote(ci_study, ci_aggregate, tmp_path
 
 
 def test_the_verdict_says_whether_the_best_interval_separates_it_from_the_next():
-    from sweeper.aggregate.report import verdict
+    from sweeper.results._report import verdict
 
     def table(*rows):
         return pd.DataFrame(rows, columns=["method", "n", "iqm", "iqm_low", "iqm_high"])

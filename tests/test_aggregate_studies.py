@@ -15,9 +15,9 @@ from optuna.trial import TrialState
 from synthetic_study import write_synthetic_study
 
 from sweeper import cli
-from sweeper.aggregate import load_study_frame
-from sweeper.aggregate.normalize import study_anchors
-from sweeper.stats import SUMMARIES, Group, iqm, several, stratified_bootstrap
+from sweeper.results._normalize import study_anchors
+from sweeper.results._stats import SUMMARIES, Group, iqm, several, stratified_bootstrap
+from sweeper.results.cli_aggregate import load_study_frame
 from sweeper.storage import current_trials, curve_of
 
 #: name -> (env, methods, random agent's success rate)

@@ -24,10 +24,10 @@ from optuna.trial import TrialState
 from agent import video
 from agent.config import TrialResult
 from agent.metrics import normalized_auc
-from sweeper.artifacts import ArtifactStore, artifact_location, upload_once
-from sweeper.launcher import launch, prepare
-from sweeper.spec import SpecError, load_spec, parse_spec
+from sweeper.run._launch import launch, prepare
+from sweeper.spec._models import SpecError, load_spec, parse_spec
 from sweeper.storage import open_storage, trial_attr
+from sweeper.storage._artifacts import ArtifactStore, artifact_location, upload_once
 
 OPENER = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # this machine only
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -60,7 +60,7 @@ def test_video_steps_leave_the_plan_hash_alone() -> None:
 
 
 def _plan(spec):
-    from sweeper.plan import build_plan
+    from sweeper.plan._entries import build_plan
 
     return build_plan(spec)
 

@@ -30,7 +30,7 @@ import pytest
 from cdp import OPENER, Page, browser, chromium, stop
 from conftest import running_dashboard
 
-from sweeper.aggregate.dashboard import COMPARISON_ID, CONTROLS
+from sweeper.results._dashboard_card import COMPARISON_ID, CONTROLS
 
 pytestmark = pytest.mark.skipif(chromium() is None, reason="no chromium (apt-get install chromium)")
 
@@ -181,11 +181,11 @@ def test_the_dashboard_shows_the_comparison_and_plays_a_trial_video(ci_study, ci
 def published(tmp_path_factory) -> tuple[str, int]:
     """A copy of the published study with the comparison saved into it by this code (as
     ``sweeper aggregate`` saves it), and the number of its best non-control trial."""
-    from sweeper.aggregate.dashboard import best_non_control, save_to_dashboard
-    from sweeper.aggregate.frame import load_study_frame, stage_frame
-    from sweeper.aggregate.tables import study_tables
-    from sweeper.spec import load_spec
-    from sweeper.study import open_study
+    from sweeper.results._dashboard_card import best_non_control, save_to_dashboard
+    from sweeper.results._frame import load_study_frame, stage_frame
+    from sweeper.results._tables import study_tables
+    from sweeper.spec._models import load_spec
+    from sweeper.storage._open import open_study
 
     spec = load_spec(ROOT / "studies" / "fetch_reach_cpu.yaml")
     database = tmp_path_factory.mktemp("published") / "study.db"

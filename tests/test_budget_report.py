@@ -1,4 +1,4 @@
-"""The gradient budget as an axis (``sweeper.aggregate.budget``): studies of one env joined
+"""The gradient budget as an axis (``sweeper.results._budget``): studies of one env joined
 by encoder, configuration and seed; settings labelled from the trials' SAC values; a study
 whose configurations differ refused; the paired probability, n and CPU-hours per setting."""
 
@@ -16,7 +16,7 @@ from optuna.trial import TrialState
 from synthetic_study import write_planned_study
 
 from sweeper import cli
-from sweeper.aggregate.budget import (
+from sweeper.results._budget import (
     a1_departures,
     budget_markdown,
     budget_table,
@@ -25,9 +25,9 @@ from sweeper.aggregate.budget import (
     setting_label,
     study_trials,
 )
-from sweeper.aggregate.frame import load_study_frame, stage_frame
-from sweeper.spec import load_spec, parse_spec
-from sweeper.stats import iqm
+from sweeper.results._frame import load_study_frame, stage_frame
+from sweeper.results._stats import iqm
+from sweeper.spec._models import load_spec, parse_spec
 from sweeper.storage import current_trials, curve_of
 
 #: each method's final success rate on config 0, seed 0 (less 0.05 a config, more 0.02 a

@@ -31,7 +31,7 @@ DEADLINE = 900.0
 
 def write_spec(path: Path, study: str, checkpoints: Path) -> None:
     """studies/ci.yaml (tiny point_reach trials) with 2 configurations x 2 methods."""
-    from sweeper.spec import load_yaml
+    from sweeper.spec._models import load_yaml
 
     spec = load_yaml((REPO / "studies" / "ci.yaml").read_text())
     spec.update(study=study, trials_per_method=2, checkpoints=str(checkpoints))
@@ -175,7 +175,7 @@ def test_study_survives_losing_a_worker_node(tmp_path, postgres, cluster):
     # the resumed curve is the curve of the same trial run without interruption
     from conftest import assert_uninterrupted_curve
 
-    from sweeper.launcher import prepare
+    from sweeper.run._launch import prepare
 
     entry = next(e for e in prepare(str(spec_path), storage=PG_URL)[1].entries if e.key == lost_key)
     assert_uninterrupted_curve(lost, entry.trial_config)

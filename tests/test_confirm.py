@@ -17,10 +17,10 @@ from optuna.trial import TrialState
 from agent.config import TrialResult
 from agent.metrics import normalized_auc
 from sweeper import cli
-from sweeper.aggregate import aggregate
-from sweeper.confirmation import confirm
-from sweeper.launcher import launch, prepare
-from sweeper.plan import build_plan, confirm_plan, fresh_seeds
+from sweeper.plan._entries import build_plan, confirm_plan, fresh_seeds
+from sweeper.results.cli_aggregate import aggregate
+from sweeper.run._confirm import confirm
+from sweeper.run._launch import launch, prepare
 from sweeper.storage import open_storage
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)

@@ -10,7 +10,7 @@ import pytest
 from conftest import running_dashboard
 
 from sweeper import cli
-from sweeper.aggregate.dashboard import COMPARISON_ID, split_views
+from sweeper.results._dashboard_card import COMPARISON_ID, split_views
 
 #: no proxy: the dashboard is on this machine
 OPENER = urllib.request.build_opener(urllib.request.ProxyHandler({}))

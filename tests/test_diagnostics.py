@@ -436,7 +436,7 @@ def test_cli_start_and_min_goal_distance_are_recorded(tmp_path) -> None:
 
 
 def test_cli_start_choices(capsys) -> None:
-    from sweeper import diagnose
+    from sweeper.diagnose import cli_diagnose as diagnose
 
     assert diagnose.START_MODES == dx.START_MODES  # spelled out there to keep --help light
     with pytest.raises(SystemExit) as exit_info:
@@ -595,6 +595,7 @@ def test_other_analyses_do_not_depend_on_an_earlier_exploration(fetch_push_envs,
 
 
 def test_every_analysis_the_command_offers_has_a_runner_in_order() -> None:
-    from sweeper import analyses, diagnose
+    from sweeper.diagnose import _analyses as analyses
+    from sweeper.diagnose import cli_diagnose as diagnose
 
     assert tuple(analyses.RUNNERS) == diagnose.ANALYSES

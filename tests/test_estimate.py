@@ -10,7 +10,8 @@ from conftest import CI_SPEC
 
 from agent.calibrate import Calibration, TrialCosts, per_call
 from agent.config import SACConfig, TrialConfig
-from sweeper.estimate import format_duration, local_workers, makespan, measured_seconds
+from sweeper.plan._estimate import format_duration, local_workers, makespan
+from sweeper.storage import measured_seconds
 
 
 @pytest.mark.parametrize(
@@ -130,9 +131,9 @@ def test_sweeper_plan_calibrates_a_new_study_and_measures_a_launched_one(
 
 
 def test_the_summary_counts_what_is_left_and_warns_past_a_day_of_cpu():
-    from sweeper.estimate import TrialEstimate, summary_lines
-    from sweeper.plan import build_plan
-    from sweeper.spec import load_spec
+    from sweeper.plan._entries import build_plan
+    from sweeper.plan._estimate import TrialEstimate, summary_lines
+    from sweeper.spec._models import load_spec
 
     spec = load_spec(CI_SPEC)
     entries = build_plan(spec).entries
@@ -150,8 +151,8 @@ def test_the_summary_counts_what_is_left_and_warns_past_a_day_of_cpu():
 
 def test_the_launch_eta_knows_the_seed_phase_and_follows_the_pace():
     from agent.calibrate import TrialCosts
-    from sweeper.estimate import TrialEstimate
-    from sweeper.progress import LaunchProgress
+    from sweeper.plan._estimate import TrialEstimate
+    from sweeper.run._progress import LaunchProgress
 
     config = TrialConfig(total_steps=1000, seed_steps=500, eval_every=1000, eval_episodes=1)
     # seed steps are free, training steps 1 s: a trial is 500 s, all in its second half
@@ -184,8 +185,8 @@ def test_a_resumed_trial_s_steps_before_its_checkpoint_are_not_the_launch_s_pace
     there again: neither the rate nor the pace counts those steps (they made a relaunched
     study say "391 env steps/s | ETA 18 min" where 13 h were left)."""
     from agent.calibrate import TrialCosts
-    from sweeper.estimate import TrialEstimate
-    from sweeper.progress import LaunchProgress
+    from sweeper.plan._estimate import TrialEstimate
+    from sweeper.run._progress import LaunchProgress
 
     config = TrialConfig(total_steps=15000, seed_steps=1000, eval_every=1000, eval_episodes=1)
     costs = TrialCosts(setup=0.0, seed_step=0.0, train_step=0.1, eval_step=0.0)  # 1,400 s
@@ -207,8 +208,8 @@ def test_a_resumed_trial_s_steps_before_its_checkpoint_are_not_the_launch_s_pace
 
 
 def test_halving_seconds_count_each_rung_s_trials():
-    from sweeper.estimate import TrialEstimate, halving_seconds
-    from sweeper.halving import Schedule
+    from sweeper.plan._estimate import TrialEstimate, halving_seconds
+    from sweeper.plan._halving import Schedule
 
     config = TrialConfig(total_steps=400, seed_steps=100, eval_every=100)
     entries = [

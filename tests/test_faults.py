@@ -27,10 +27,10 @@ from optuna.trial import TrialState
 from agent import train
 from agent.checkpoint import saved_step
 from agent.config import TrialResult
-from sweeper.launcher import launch, prepare, study_attrs
-from sweeper.plan import build_plan
+from sweeper.plan._entries import build_plan
+from sweeper.run._launch import launch, prepare, study_attrs
 from sweeper.storage import StudyStore, curve_of, open_storage, trial_attr
-from sweeper.study import open_study
+from sweeper.storage._open import open_study
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake trains below
@@ -231,7 +231,7 @@ RACER = """
 import os, sys, time
 from pathlib import Path
 from agent.config import TrialResult
-from sweeper.launcher import launch, prepare
+from sweeper.run._launch import launch, prepare
 from sweeper.storage import StudyStore
 
 spec_path, ready, go = sys.argv[1], Path(sys.argv[2]), sys.argv[3]
@@ -384,8 +384,8 @@ CONFIRMER = """
 import sys, time, zlib
 from pathlib import Path
 from agent.config import TrialResult
-from sweeper.confirmation import confirm
-from sweeper.launcher import launch, prepare
+from sweeper.run._confirm import confirm
+from sweeper.run._launch import launch, prepare
 
 spec_path, address, stage = sys.argv[1], sys.argv[2], sys.argv[3]
 
@@ -705,8 +705,8 @@ def test_a_launch_that_ends_first_ends_its_calibration(tmp_path, local_ray, monk
     3) stops the calibration thread and waits for it: a thread still in torch or MuJoCo when
     the process exits aborts it ("terminate called without an active exception"), which
     made a busy racer exit -6 instead of 3 under load."""
-    from sweeper import launcher
-    from sweeper.estimate import InBackground
+    from sweeper.plan._estimate import InBackground
+    from sweeper.run import _launch as launcher
 
     monkeypatch.setattr(launcher, "CALIBRATION_SECONDS", 600.0)  # still calibrating at the end
     spec, plan = prepare(str(one_trial_spec(tmp_path, "busy", address=local_ray)))
@@ -742,8 +742,8 @@ def test_a_driver_taken_over_stops_with_exit_3_at_its_next_heartbeat(
     """A driver on another host that judged this one dead (see test_storage) claimed the
     study: this driver's next heartbeat finds it and the launch stops, exit 3, one line, the
     new driver's record and the trial in flight left to it."""
-    from sweeper import launcher
-    from sweeper.storage import writer
+    from sweeper.run import _launch as launcher
+    from sweeper.storage import _writer as writer
 
     monkeypatch.setattr(launcher, "HEARTBEAT_SECONDS", 0.2)
     url = None if backend == "sqlite" else request.getfixturevalue("pg_url")
@@ -787,7 +787,7 @@ import sys, time
 from pathlib import Path
 import torch
 from agent.config import TrialResult
-from sweeper.launcher import launch, prepare
+from sweeper.run._launch import launch, prepare
 
 spec_path, address, stage = sys.argv[1], sys.argv[2], sys.argv[3]
 
@@ -924,7 +924,7 @@ def test_a_database_lost_past_the_grace_stops_the_launch_and_a_relaunch_resumes(
     the cause and the fix; the trial stays RUNNING, and the next launch resumes it."""
     from pg_proxy import Proxy
 
-    from sweeper.storage import urls
+    from sweeper.storage import _urls as urls
 
     monkeypatch.setattr(urls, "SQLITE_TIMEOUT", 0.2)  # SQLite's own wait on a lock
     if backend == "sqlite":
@@ -980,7 +980,7 @@ def test_a_database_lost_past_the_grace_stops_the_launch_and_a_relaunch_resumes(
 def test_a_locked_sqlite_database_is_waited_for_within_the_grace(tmp_path, local_ray, monkeypatch):
     """A lock held by another process while the driver records a result: the write meets
     "database is locked", is tried again, and lands once the lock is gone; exit 0."""
-    from sweeper.storage import urls
+    from sweeper.storage import _urls as urls
 
     monkeypatch.setattr(urls, "SQLITE_TIMEOUT", 0.2)
     spec, plan = prepare(str(one_trial_spec(tmp_path, "locked")))

@@ -12,7 +12,8 @@ from conftest import ROOT
 
 from agent.calibrate import Calibration, TrialCosts
 from encoders.options import VGG_WEIGHTS_ENV_VAR
-from sweeper import cli, launcher
+from sweeper import cli
+from sweeper.run import _launch as launcher
 
 #: an absolute path of a development machine: a folder under work, root or tmp at the root of
 #: the file system (Ray's own tmp/ray is a fact about Ray; a container's home is the image's)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from sweeper import halving
+from sweeper.plan import _halving as halving
+from sweeper.spec import default_rungs
 
 
 def test_rung_sizes_keep_a_fraction_rounded_up_and_at_least_one():
@@ -25,13 +26,13 @@ def test_env_steps_spent_by_hand():
 
 
 def test_default_rungs_are_on_the_grid_below_the_budget():
-    assert halving.default_rungs(20000, 1000) == (2000, 6000)
-    assert halving.default_rungs(15000, 1000) == (1000, 5000)
+    assert default_rungs(20000, 1000) == (2000, 6000)
+    assert default_rungs(15000, 1000) == (1000, 5000)
     # never inside the random-action seed phase (fetch_reach_cpu: 1,000 seed steps)
-    assert halving.default_rungs(15000, 1000, seed_steps=1000) == (2000, 5000)
-    assert halving.default_rungs(20000, 1000, seed_steps=1000) == (2000, 6000)
-    assert halving.default_rungs(9000, 1000, seed_steps=2500) == (3000,)
-    assert halving.default_rungs(900, 1000) == ()
+    assert default_rungs(15000, 1000, seed_steps=1000) == (2000, 5000)
+    assert default_rungs(20000, 1000, seed_steps=1000) == (2000, 6000)
+    assert default_rungs(9000, 1000, seed_steps=2500) == (3000,)
+    assert default_rungs(900, 1000) == ()
 
 
 def test_auc_until_cuts_the_curve_at_the_rung():
@@ -119,8 +120,8 @@ def _halving_spec(**halving):
 
 
 def test_a_spec_halving_section_enters_the_plan_and_its_hash_only_when_present():
-    from sweeper.plan import build_plan
-    from sweeper.spec import SpecError
+    from sweeper.plan._entries import build_plan
+    from sweeper.spec._models import SpecError
 
     plain = build_plan(_plain_spec())
     assert plain.schedule is None
@@ -144,7 +145,7 @@ def _plain_spec(**changes):
     import yaml
     from conftest import CI_SPEC
 
-    from sweeper.spec import parse_spec
+    from sweeper.spec._models import parse_spec
 
     data = yaml.safe_load(CI_SPEC.read_text())
     data["trials_per_method"] = 3
@@ -164,7 +165,7 @@ def _plain_spec(**changes):
     ],
 )
 def test_a_bad_halving_section_is_one_line(halving, message):
-    from sweeper.spec import SpecError
+    from sweeper.spec._models import SpecError
 
     with pytest.raises(SpecError, match=message.replace(".", r"\.")):
         _halving_spec(**halving)

@@ -18,8 +18,8 @@ from optuna.trial import TrialState
 
 from agent.config import Outcome, TrialResult
 from agent.metrics import normalized_auc
-from sweeper.halving import HALVING_ATTR, Ladder
-from sweeper.launcher import launch, prepare
+from sweeper.plan._halving import HALVING_ATTR, Ladder
+from sweeper.run._launch import launch, prepare
 from sweeper.storage import curve_of, open_storage, trial_attr
 
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the fake train below
@@ -132,7 +132,7 @@ def test_every_method_runs_the_same_trials_and_steps_at_every_rung(tmp_path):
     assert len(study.get_trials()) == 12
 
     # aggregate says what each comparison covers
-    from sweeper.aggregate import aggregate
+    from sweeper.results.cli_aggregate import aggregate
 
     result = aggregate(spec.storage_url, "ci", tmp_path / "agg", dashboard=False)
     assert result.table.set_index("method")["n"].to_dict() == {"pixel": 2, "linear": 2}

@@ -20,10 +20,11 @@ from optuna.trial import TrialState
 
 from agent.config import TrialResult
 from agent.metrics import normalized_auc
-from sweeper import cli, launcher
-from sweeper.launcher import launch, prepare
+from sweeper import cli
+from sweeper.run import _launch as launcher
+from sweeper.run._launch import launch, prepare
 from sweeper.storage import CURVE_ATTR, StudyStore, curve_of, open_storage, trial_attr
-from sweeper.storage.writer import _this_driver
+from sweeper.storage._writer import _this_driver
 
 GRID = [0, 100, 200, 300]  # studies/ci.yaml: env_steps 300, eval_every 100
 
@@ -63,7 +64,7 @@ def check_ci_study(study: optuna.Study) -> None:
         assert [m["from_step"] for m in machines] == [0]
         assert machines[0]["kernels"] and machines[0]["cpu"]
         # the trial's page shows no JSON a person must parse: those values are system
-        # attrs, with words under their keys (sweeper.storage.attrs)
+        # attrs, with words under their keys (sweeper.storage._attrs)
         shown = {k: v for k, v in attrs.items() if isinstance(v, dict | list)}
         assert not shown, shown
         assert attrs["worker"] == f"pid {worker['pid']} on {worker['node']}"
@@ -422,7 +423,7 @@ def test_more_torch_threads_than_cpus_is_refused_with_the_fix(tmp_path):
 def test_progress_display():
     import io
 
-    from sweeper.progress import LaunchProgress
+    from sweeper.run._progress import LaunchProgress
 
     keys = ["pixel/0/0", "pixel/1/0", "vae/0/0", "vae/1/0"]
     stream = io.StringIO()
@@ -473,7 +474,7 @@ def test_unreachable_ray_address_exits_2_and_writes_nothing(tmp_path):
 
 LOCAL_RAY = """
 import json
-from sweeper.execution import start_ray
+from sweeper.run._execution import start_ray
 import ray, psutil  # Ray vendors psutil
 start_ray(None, num_cpus=1)
 node = ray._private.worker._global_node
@@ -506,7 +507,7 @@ def test_a_local_ray_listens_on_the_loopback_only_without_metrics():
 
 
 def test_a_refused_connection_names_token_authentication(monkeypatch):
-    from sweeper.resources import cannot_reach_message
+    from sweeper.run._resources import cannot_reach_message
 
     refused = ConnectionError("Failed to connect to Ray cluster at 10.0.0.1:6379")
     monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
@@ -529,7 +530,7 @@ def test_pool_counts_only_workers_that_started():
     actors, so no trial waits on an actor that can never be placed."""
     import time
 
-    from sweeper.execution import Finished, WorkerPool
+    from sweeper.run._execution import Finished, WorkerPool
 
     config = prepare(CI_SPEC)[1].entries[0].trial_config
     pool = WorkerPool(3, cpus=1, train=always_succeed)  # the module's Ray has 2 CPUs
@@ -555,7 +556,7 @@ def _wait_idle(pool, count: int, seconds: float = 60) -> None:
 
 def test_workers_import_the_agent_and_env_before_their_first_trial():
     """Warm workers: torch, the agent and the env module load while the driver starts up."""
-    from sweeper.execution import WorkerPool
+    from sweeper.run._execution import WorkerPool
 
     def loaded(worker) -> list[str]:
         wanted = ("torch", "agent.trial", "agent.envs.point_reach")
@@ -579,7 +580,7 @@ def test_a_failing_warm_up_does_not_kill_the_worker():
     then reports the error, instead of the pool replacing the actor forever."""
     from conftest import tiny
 
-    from sweeper.execution import Errored, Finished, WorkerPool
+    from sweeper.run._execution import Errored, Finished, WorkerPool
 
     pool = WorkerPool(1, env="no_such_env")
     try:
@@ -617,7 +618,7 @@ def wait_for_go(config, report=None):
 def test_shrink_kills_idle_workers_only_down_to_the_size(tmp_path):
     from conftest import tiny
 
-    from sweeper.execution import Finished, Reported, WorkerPool
+    from sweeper.run._execution import Finished, Reported, WorkerPool
 
     pool = WorkerPool(2, train=wait_for_go)
     try:
@@ -654,7 +655,7 @@ def test_the_driver_measures_the_random_agent_once_per_study(tmp_path, monkeypat
     skips it."""
     from agent.envs import make_env
     from encoders.diagnostics.exploration import random_exploration
-    from sweeper import random_agent
+    from sweeper.run import _random_agent as random_agent
 
     url = f"sqlite:///{tmp_path / 'study.db'}"
     env = {"name": "point_reach", "image_size": 32, "options": {"success_threshold": 0.5}}
@@ -696,7 +697,7 @@ def test_an_interrupted_launch_says_which_trials_resume_from_a_checkpoint(tmp_pa
 
     import torch
 
-    from sweeper.driver import Driver, Job
+    from sweeper.run._driver import Driver, Job
 
     path = write_ci_spec(tmp_path / "ci.yaml", checkpoints=str(tmp_path / "ck"))
     spec, plan = prepare(str(path))

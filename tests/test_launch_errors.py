@@ -21,8 +21,9 @@ from pg_proxy import Proxy
 from sqlalchemy import event
 from sqlalchemy.engine import Engine
 
-from sweeper import cli, launcher
-from sweeper.launcher import prepare
+from sweeper import cli
+from sweeper.run import _launch as launcher
+from sweeper.run._launch import prepare
 from sweeper.storage import open_storage
 
 LIGHT_HELP = """

@@ -1,6 +1,7 @@
-"""ruff stays clean on the whole tree, lint and format (the config is in pyproject.toml)."""
+"""ruff stays clean on the whole tree, lint and format, and the import contracts of
+``lint-imports`` hold (both configured in pyproject.toml)."""
 
-import ast
+import os
 import shutil
 import subprocess
 import sys
@@ -17,85 +18,39 @@ def test_ruff_is_clean(command):
     assert result.returncode == 0, result.stdout + result.stderr
 
 
-PACKAGES = ("agent", "encoders", "sweeper")
+def lint_imports(root: Path) -> subprocess.CompletedProcess:
+    """``lint-imports`` on the tree at ``root``, with its contracts (pyproject.toml)."""
+    command = shutil.which("lint-imports") or str(Path(sys.executable).parent / "lint-imports")
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    return subprocess.run([command], cwd=root, env=env, capture_output=True, text=True)
 
 
-def _in_type_checking(node: ast.AST, parents: dict[ast.AST, ast.AST]) -> bool:
-    while node in parents:
-        node = parents[node]
-        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
-            return True
-    return False
+def test_the_layers_of_docs_architecture_hold():
+    result = lint_imports(ROOT)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "0 broken" in result.stdout
 
 
-def import_graph(root: Path = ROOT) -> dict[str, set[str]]:
-    """Module -> the project modules it imports, at module level or inside a function (an
-    import under ``if TYPE_CHECKING:`` never runs and is left out). ``from a.b import c``
-    is an edge to ``a.b.c`` when that is a module, else to ``a.b``; parent packages that
-    Python also imports are not edges (a package may import its submodules)."""
-    files = {
-        ".".join(path.relative_to(root).with_suffix("").parts).removesuffix(".__init__"): path
-        for package in PACKAGES
-        for path in (root / package).rglob("*.py")
-    }
-    graph: dict[str, set[str]] = {}
-    for module, path in files.items():
-        tree = ast.parse(path.read_text())
-        parents = {child: node for node in ast.walk(tree) for child in ast.iter_child_nodes(node)}
-        edges = set()
-        for node in ast.walk(tree):
-            if isinstance(node, ast.Import) and not _in_type_checking(node, parents):
-                edges |= {alias.name for alias in node.names if alias.name in files}
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module in files:
-                if _in_type_checking(node, parents):
-                    continue
-                for alias in node.names:
-                    name = f"{node.module}.{alias.name}"
-                    edges.add(name if name in files else node.module)
-        graph[module] = edges - {module}
-    return graph
-
-
-def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
-    """The strongly connected groups of more than one module (Tarjan's algorithm)."""
-    index: dict[str, int] = {}
-    low: dict[str, int] = {}
-    stack: list[str] = []
-    circles = []
-
-    def visit(module: str) -> None:
-        index[module] = low[module] = len(index)
-        stack.append(module)
-        for other in sorted(graph[module]):
-            if other not in index:
-                visit(other)
-                low[module] = min(low[module], low[other])
-            elif other in stack:
-                low[module] = min(low[module], index[other])
-        if low[module] == index[module]:
-            group = []
-            while True:
-                other = stack.pop()
-                group.append(other)
-                if other == module:
-                    break
-            if len(group) > 1:
-                circles.append(sorted(group))
-
-    for module in sorted(graph):
-        if module not in index:
-            visit(module)
-    return circles
-
-
-def test_import_circles_are_found_and_there_are_none():
-    assert import_circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
-    graph = import_graph()
-    assert {"sweeper.driver", "agent.sac", "encoders.conv"} <= set(graph)
-    assert "encoders.conv" in graph["agent.sac"]
-    assert import_circles(graph) == []
-
-
-if __name__ == "__main__":  # ./run python tests/test_lint.py: the circles, one per line
-    for circle in import_circles(import_graph()):
-        print(" <-> ".join(circle))
+@pytest.mark.parametrize(
+    ("module", "line", "contract"),
+    [
+        ("sweeper/spec/_words.py", "import sweeper.storage", "sweeper's packages"),
+        ("sweeper/results/_stats.py", "import sweeper.run._launch", "sweeper's packages"),
+        ("agent/metrics.py", "import sweeper.spec", "sweeper -> agent -> encoders"),
+        ("sweeper/run/_reaper.py", "import sweeper.run._launch", "no import circle"),
+    ],
+)
+def test_a_backwards_import_breaks_a_contract(tmp_path, module, line, contract):
+    """Each contract fails on the import it forbids (in a copy of the tree)."""
+    for name in ("pyproject.toml", "agent", "encoders", "sweeper"):
+        source = ROOT / name
+        if source.is_dir():
+            shutil.copytree(source, tmp_path / name, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(source, tmp_path / name)
+    path = tmp_path / module
+    path.write_text(path.read_text() + f"\n{line}  # noqa\n")
+    result = lint_imports(tmp_path)
+    assert result.returncode != 0
+    broken = [row for row in result.stdout.splitlines() if row.endswith(" BROKEN")]
+    assert [row for row in broken if row.startswith(contract)], result.stdout

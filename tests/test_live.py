@@ -1,5 +1,5 @@
 """The dashboard's figures refreshed by the driver while a launch runs
-(``sweeper.aggregate.live``): when a refresh runs, that it bounds its own cost, and that a
+(``sweeper.results._live``): when a refresh runs, that it bounds its own cost, and that a
 launch leaves the figures and the note in the study without ``sweeper aggregate``."""
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from optuna_dashboard import get_note
 from optuna_dashboard._custom_plot_data import get_plotly_graph_objects
 from synthetic_study import write_synthetic_study
 
-from sweeper.aggregate import live
-from sweeper.aggregate.dashboard import COMPARISON_ID, NOTE_BEGIN, split_views
+from sweeper.results import _live as live
+from sweeper.results._dashboard_card import COMPARISON_ID, NOTE_BEGIN, split_views
 from sweeper.storage import StudyStore, open_storage
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)

@@ -1,4 +1,4 @@
-"""Trials recorded in an older format, rewritten in today's (``sweeper.storage.migrate``,
+"""Trials recorded in an older format, rewritten in today's (``sweeper.storage._migrate``,
 ``StudyStore.upgrade``): every param on every trial and no ``method`` param, the curve a
 user attr, before; the params that vary and ``method``, the constants once in the study
 attr ``fixed_params``, the curve a system attr, today. Readers get the same study after,
@@ -16,14 +16,14 @@ import pytest
 from conftest import write_ci_spec
 
 from sweeper import cli
-from sweeper.aggregate import load_study_frame
-from sweeper.artifacts import ArtifactStore, trial_artifacts, upload_once
-from sweeper.plan import build_plan
-from sweeper.spec import load_spec
-from sweeper.status import status_lines
+from sweeper.plan._entries import build_plan
+from sweeper.results.cli_aggregate import load_study_frame
+from sweeper.results.cli_status import status_lines
+from sweeper.spec._models import load_spec
 from sweeper.storage import CURVE_ATTR, StorageError, StudyBusy, StudyStore, curve_of, open_storage
-from sweeper.storage.params import FIXED_PARAMS_ATTR, METHOD_PARAM
-from sweeper.study import open_study
+from sweeper.storage._artifacts import ArtifactStore, trial_artifacts, upload_once
+from sweeper.storage._open import open_study
+from sweeper.storage._params import FIXED_PARAMS_ATTR, METHOD_PARAM
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 CURVE = {"step": [0, 100, 200, 300], "success_rate": [0.0, 0.5, 1.0, 1.0],

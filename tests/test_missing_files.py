@@ -17,13 +17,14 @@ from optuna.trial import TrialState
 
 from agent.config import TrialResult
 from encoders.options import VGG_WEIGHTS_ENV_VAR
-from sweeper import cli, launcher
-from sweeper.driver import remove_checkpoint
-from sweeper.launch import skip_lines
-from sweeper.plan import build_plan
-from sweeper.progress import LaunchProgress
-from sweeper.spec import check_files, load_spec, parse_spec
-from sweeper.spec_yaml import load_yaml
+from sweeper import cli
+from sweeper.plan._entries import build_plan
+from sweeper.run import _launch as launcher
+from sweeper.run._driver import remove_checkpoint
+from sweeper.run._progress import LaunchProgress
+from sweeper.run.cli_launch import skip_lines
+from sweeper.spec._models import check_files, load_spec, parse_spec
+from sweeper.spec._yaml import load_yaml
 from sweeper.storage import open_storage
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)

@@ -1,4 +1,4 @@
-"""Which params a trial is registered with (``sweeper.storage.params``): what varies and
+"""Which params a trial is registered with (``sweeper.storage._params``): what varies and
 ``method``; the constants kept once in the study attr ``fixed_params`` and read back by the
 aggregation; a study written before (every param on every trial) still syncs and reads."""
 
@@ -9,11 +9,11 @@ import pytest
 from conftest import CI_SPEC
 from optuna.trial import TrialState
 
-from sweeper.aggregate import load_study_frame, study_info
-from sweeper.plan import build_plan
-from sweeper.spec import load_spec
+from sweeper.plan._entries import build_plan
+from sweeper.results.cli_aggregate import load_study_frame, study_info
+from sweeper.spec._models import load_spec
 from sweeper.storage import StudyStore, open_storage
-from sweeper.storage.params import FIXED_PARAMS_ATTR, applies_to, fixed_params, registered
+from sweeper.storage._params import FIXED_PARAMS_ATTR, applies_to, fixed_params, registered
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 

@@ -9,9 +9,9 @@ import numpy as np
 
 from agent.config import SACConfig, TrialConfig
 from encoders.options import default_space
-from sweeper.plan import build_plan
-from sweeper.space import derive_rng, param_value, sample_configs, space_size
-from sweeper.spec import parse_spec
+from sweeper.plan._entries import build_plan
+from sweeper.spec._models import parse_spec
+from sweeper.spec._sampling import derive_rng, param_value, sample_configs, space_size
 
 BASE = {
     "study": "p",
@@ -190,7 +190,7 @@ def test_pinned_hashes_of_the_shipped_specs():
     hash (a study begun with PyTorch's init refuses to resume)."""
     from conftest import ROOT
 
-    from sweeper.spec import load_spec, load_yaml
+    from sweeper.spec._models import load_spec, load_yaml
 
     ci = build_plan(load_spec(ROOT / "studies" / "ci.yaml"))
     assert ci.hash == "830e846cffc46202330169036592bb8d8f81b561df2e82df24eb736a5b768cd5"
@@ -213,7 +213,7 @@ def test_a_method_fixes_sac_fields_and_stays_paired_with_every_study_of_its_spac
     (the budget ladder pairs with fetch_reach_cpu by construction)."""
     from conftest import ROOT
 
-    from sweeper.spec import load_spec
+    from sweeper.spec._models import load_spec
 
     cpu = build_plan(load_spec(ROOT / "studies" / "fetch_reach_cpu.yaml"))
     budget = build_plan(load_spec(ROOT / "studies" / "fetch_reach_budget.yaml"))
@@ -252,8 +252,8 @@ def test_a_method_fixes_sac_fields_and_stays_paired_with_every_study_of_its_spac
 def test_sweeper_plan_says_each_method_s_gradient_samples_and_what_is_outside_a1():
     from conftest import ROOT
 
-    from sweeper.show_plan import budget_lines
-    from sweeper.spec import load_spec
+    from sweeper.plan.cli_plan import budget_lines
+    from sweeper.spec._models import load_spec
 
     spec = load_spec(ROOT / "studies" / "fetch_reach_budget.yaml")
     lines = budget_lines(spec, build_plan(spec))

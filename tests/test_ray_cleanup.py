@@ -22,7 +22,7 @@ DRIVER = """
 import os, signal, sys, time
 from pathlib import Path
 from agent.config import TrialResult
-from sweeper.launcher import launch, prepare
+from sweeper.run._launch import launch, prepare
 
 spec_path, marker, mode = sys.argv[1], Path(sys.argv[2]), sys.argv[3]
 
@@ -37,7 +37,7 @@ def trial(config, report=None):
     return TrialResult(steps=(0, config.total_steps), metrics=metrics, auc=0.5)
 
 # the project's modules loaded when the driver loop starts (see the exit-0 test)
-from sweeper import driver
+from sweeper.run import _driver as driver
 started, run = [], driver.Driver.run
 driver.Driver.run = lambda self, todo: started.append(set(sys.modules)) or run(self, todo)
 spec, plan = prepare(spec_path)
@@ -102,7 +102,7 @@ def kill_session(sid: int) -> None:
 def test_a_launch_prints_none_of_rays_noise_and_leaves_no_process_after_exit_0(tmp_path):
     """And the driver imports none of the project's code once its loop runs: code changed
     under a running launch (a git pull) was otherwise loaded half new, half old (the new
-    ``sweeper.aggregate`` imported after a trial beside the old ``sweeper.storage``), which
+    ``sweeper.results`` imported after a trial beside the old ``sweeper.storage``), which
     stopped a study with an ImportError; the stop path's ``saved_step`` is loaded too."""
     driver = start_driver(tmp_path, "die")
     try:

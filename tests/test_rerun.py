@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from sweeper.rerun import first_difference, machine_lines
+from sweeper.run.cli_rerun import first_difference, machine_lines
 
 CURVE = {"step": [0, 100], "success_rate": [0.0, 0.5], "final_distance": [0.3, math.nan]}
 HERE = {"cpu": "AuthenticAMD 26 2", "cpu_name": "AMD EPYC", "kernels": "AVX512", "torch": "2"}

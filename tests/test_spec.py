@@ -17,7 +17,7 @@ from conftest import ROOT
 from agent.config import SACConfig
 from encoders.options import VGGOptions, default_space, hyperparameters
 from sweeper import cli
-from sweeper.spec import SpecError, check_files, load_spec, load_yaml, parse_spec
+from sweeper.spec._models import SpecError, check_files, load_spec, load_yaml, parse_spec
 
 SAC_DEFAULTS = default_space(SACConfig)
 VGG_ENV = hyperparameters(VGGOptions)["weights_path"][2].env
@@ -82,7 +82,7 @@ def test_shipped_studies_load(name, vgg_weights):
 def test_checking_a_spec_imports_no_torch(vgg_weights):
     """The driver validates specs of every encoder without torch (start-up time, memory)."""
     code = (
-        "import sys; from sweeper.launcher import prepare, study_attrs; "
+        "import sys; from sweeper.run._launch import prepare, study_attrs; "
         "spec, plan = prepare(sys.argv[1]); study_attrs(spec, plan); "
         "assert 'torch' not in sys.modules, 'torch was imported'"
     )
@@ -298,7 +298,7 @@ def test_method_spaces_merge_defaults_and_encoder_options(vgg_weights):
     vae = spec.methods["vae"].space
     assert vae["beta"] == (2.0, 4.5) and all(isinstance(b, float) for b in vae["beta"])
     assert vae["num_images"] == (300,)
-    assert vae["latent_dim"] == (8, 16)  # sweeper.space default, thesis A.1
+    assert vae["latent_dim"] == (8, 16)  # sweeper.spec._sampling default, thesis A.1
     assert spec.methods["linear"].space == {"latent_dim": (128, 256)}
 
 
@@ -350,7 +350,7 @@ def test_yaml_follows_the_1_2_core_schema():
 
 def test_light_imports():
     code = (
-        "import sys, sweeper.spec, sweeper.plan, sweeper.space, agent.envs; "
+        "import sys, sweeper.spec, sweeper.plan, agent.envs; "
         "print([m for m in ('torch', 'mujoco', 'ray', 'optuna') if m in sys.modules])"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)

@@ -9,8 +9,8 @@ import scipy.stats
 from scipy.stats import trim_mean
 
 from agent.metrics import normalized_auc
-from sweeper import stats
-from sweeper.stats import (
+from sweeper.results import _stats as stats
+from sweeper.results._stats import (
     Group,
     bootstrap_ci,
     bootstrap_indices,

@@ -40,7 +40,7 @@ optuna.logging.set_verbosity(optuna.logging.WARNING)
 
 @dataclass(frozen=True)
 class Entry:
-    """The part of sweeper.plan.PlanEntry the store reads."""
+    """The part of sweeper.plan._entries.PlanEntry the store reads."""
 
     method: str
     config_id: int
@@ -168,7 +168,7 @@ def test_the_curve_is_a_system_attr_and_an_older_user_attr_curve_still_reads(sql
     """The driver's curve goes to the trial's system attrs (optuna-dashboard's trial table
     does not show them); a trial written before, with the curve as a user attr, still
     reads, for ``curve_of`` and for aggregate's ``read_rows``."""
-    from sweeper.study import read_rows
+    from sweeper.storage._open import read_rows
 
     store = StudyStore.open_or_create(open_storage(sqlite_url), "curves", {"plan_hash": "h"})
     curves = [{"step": [0, 10], "success_rate": [0.0, float(n)]} for n in range(2)]
@@ -190,8 +190,8 @@ def test_machine_readable_attrs_are_system_attrs_with_words_for_the_trial_page(s
     ``trial_attr`` and ``read_rows`` read), each with a user attr in words under its key
     (what optuna-dashboard's trial page shows: no JSON to parse); a trial written before,
     with them as user attrs, reads the same."""
-    from sweeper.aggregate.frame import load_study_frame
-    from sweeper.study import read_rows
+    from sweeper.results._frame import load_study_frame
+    from sweeper.storage._open import read_rows
 
     store = StudyStore.open_or_create(open_storage(sqlite_url), "words", {"plan_hash": "h"})
     machine = {"cpu": "GenuineIntel 6 85", "cpu_name": "Xeon", "kernels": "AVX2"}
@@ -497,7 +497,7 @@ def test_sync_repairs_orphans_of_an_interrupted_setup(sqlite_url):
 TAKEOVER = """
 import sys
 from sweeper import storage
-from sweeper.storage import writer
+from sweeper.storage import _writer as writer
 writer.DRIVER_STALE_SECONDS = 0.0
 store = storage.StudyStore.find(storage.open_storage(sys.argv[1], create=False), "big")
 try:

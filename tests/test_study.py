@@ -1,4 +1,4 @@
-"""sweeper.study and the storage errors of issues 15 and 35: read-only readers, a missing,
+"""sweeper.storage._open and the storage errors of issues 15 and 35: read-only readers, a missing,
 empty or damaged database, a database outage shorter than the grace (while the study is
 opened too), a full disk."""
 
@@ -21,11 +21,13 @@ from sqlalchemy import event
 from sqlalchemy.engine import Engine
 from synthetic_study import Special, write_synthetic_study
 
-from sweeper import aggregate, cli, dashboard, status
-from sweeper.plan import build_plan
-from sweeper.spec import load_spec
+from sweeper import cli, dashboard
+from sweeper.plan._entries import build_plan
+from sweeper.results import cli_aggregate as aggregate
+from sweeper.results import cli_status as status
+from sweeper.spec._models import load_spec
 from sweeper.storage import STORAGE_GRACE, StorageError, check_intact, open_storage
-from sweeper.study import NoStudy, open_study, read_rows
+from sweeper.storage._open import NoStudy, open_study, read_rows
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 
@@ -90,7 +92,7 @@ def test_status_and_aggregate_read_a_finished_study_on_read_only_media(tmp_path,
 def test_status_and_plan_list_methods_in_the_spec_order(tmp_path, capsys):
     """The order its author wrote the methods in (the CI spec: pixel, then linear), not the
     plan's by name: ``sweeper status`` listed them sorted, ``sweeper plan`` as written."""
-    from sweeper.show_plan import plan_lines
+    from sweeper.plan.cli_plan import plan_lines
 
     spec = spec_at(f"sqlite:///{tmp_path / 'none.db'}")
     written = list(spec.methods)

@@ -9,8 +9,8 @@ import optuna
 from conftest import ROOT
 from synthetic_study import write_planned_study
 
-from sweeper.aggregate.frame import load_study_frame
-from sweeper.spec import load_spec
+from sweeper.results._frame import load_study_frame
+from sweeper.spec._models import load_spec
 
 _spec = importlib.util.spec_from_file_location(
     "thesis_result", ROOT / "benchmarks" / "thesis_result.py"

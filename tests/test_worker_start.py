@@ -9,7 +9,7 @@ import sys
 import ray
 from conftest import write_ci_spec
 
-from sweeper.launcher import launch, prepare
+from sweeper.run._launch import launch, prepare
 
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # Unloadable, by value
 

@@ -1,0 +1,116 @@
+"""``sweeper status SPEC``: the per-method ledger of a study (done, running, failed, left).
+
+Counts are per plan key (``sweeper.storage._ledger``): a key re-run after a crash is
+counted once, by its current trial. Reads only, on read-only connections
+(``sweeper.storage._open.open_study``); never creates the study or its file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, TextIO
+
+from agent.config import Outcome
+from sweeper.plan import build_plan, in_spec_order
+from sweeper.spec import plural
+from sweeper.storage import (
+    STORAGE_GRACE,
+    NoStudy,
+    current_trials,
+    ledger,
+    open_study,
+    redact,
+    stored_files,
+)
+
+if TYPE_CHECKING:
+    from sweeper.spec import StudySpec
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``sweeper status`` has no options of its own (``sweeper.cli`` adds the spec and
+    --storage)."""
+
+
+def run(spec: StudySpec, args: argparse.Namespace, stream: TextIO | None = None) -> int:
+    """``sweeper status``: print the ledger; exit 0, or 2 when the study cannot be read or
+    was launched with another plan."""
+    stream = sys.stdout if stream is None else stream
+    try:
+        plan = build_plan(stored_files(spec))
+        grace = spec.execution.storage_grace
+        lines = status_lines(
+            spec.study, spec.storage_url, plan.keys(), plan.hash, grace, methods=list(spec.methods)
+        )
+    except ValueError as e:  # StorageError, a plan the spec cannot give
+        print(f"sweeper status: {e}", file=sys.stderr)
+        return 2
+    print(f"study {spec.study!r} in {redact(spec.storage_url)}", file=stream)
+    print("\n".join(lines), file=stream)
+    return 0
+
+
+def status_lines(
+    study: str,
+    url: str,
+    keys: list[str],
+    plan_hash: str,
+    grace: float = STORAGE_GRACE,
+    methods: Sequence[str] = (),
+) -> list[str]:
+    """The ledger table and notes of ``study`` in ``url`` for the planned ``keys``, the
+    methods in the order of ``methods`` (the spec's)."""
+    keys = in_spec_order(keys, methods)
+    try:
+        with open_study(url, study, write=False, plan_hash=plan_hash, grace=grace) as store:
+            attrs = store.attrs
+            trials = store.trials()
+            alive = store.driver_alive()
+    except NoStudy as e:
+        return [*_table(ledger(keys, [], False)), f"not launched yet ({e.why})"]
+    lines = _table(ledger(keys, trials, alive))
+    confirm = attrs.get("confirm")
+    if confirm:  # the confirmation stage (sweeper confirm), counted apart
+        lines.append(
+            f"confirmation stage: top {plural(confirm['top_k'], 'configuration')} per method "
+            f"on {plural(len(confirm['seeds']), 'fresh seed')} "
+            f"({', '.join(map(str, confirm['seeds']))})"
+        )
+        confirm_keys = in_spec_order(confirm["keys"], methods)
+        lines += _table(ledger(confirm_keys, trials, alive))
+        keys = [*keys, *confirm_keys]
+    driver = attrs.get("driver")
+    if alive:
+        lines.append(f"driver: running (host {driver['host']}, pid {driver['pid']})")
+    else:
+        lines.append("driver: not running")
+    current = current_trials(trials)
+    for key in keys:
+        trial = current.get(key)
+        if trial is None or trial.state.name != "FAIL":
+            continue
+        if trial.user_attrs.get("outcome") == Outcome.INTERRUPTED:
+            lines.append(f"interrupted: {key} (trial {trial.number}); a launch resumes it")
+        else:
+            error = str(trial.user_attrs.get("error", "no error recorded")).splitlines()[0]
+            lines.append(f"failed: {key} (trial {trial.number}): {error}")
+    if not alive and any(t.state.name == "RUNNING" for t in current.values()):
+        lines.append("trials marked RUNNING have no live driver; a launch resumes them")
+    return lines
+
+
+def _table(counts: dict) -> list[str]:
+    columns = ("planned", "done", "diverged", "running", "failed", "left")
+    width = max([len("method"), len("total"), *(len(m) for m in counts)])
+    header = f"{'method':<{width}}" + "".join(f"{c:>10}" for c in columns)
+    rows = [header]
+    totals = dict.fromkeys(columns, 0)
+    for method, line in counts.items():
+        values = [getattr(line, c) for c in columns]
+        rows.append(f"{method:<{width}}" + "".join(f"{v:>10}" for v in values))
+        for c, v in zip(columns, values, strict=True):
+            totals[c] += v
+    rows.append(f"{'total':<{width}}" + "".join(f"{totals[c]:>10}" for c in columns))
+    return rows

@@ -1,0 +1,425 @@
+"""The launch sequence of a study: from a spec to a claimed, synced study driven on Ray.
+
+``prepare`` validates everything first (spec, env and encoder options, storage URL), and
+``launch`` checks that the database can be written and read (an existing study is read,
+its file checked for damage, an outage waited out for ``execution.storage_grace``) and
+that Ray can be reached before it opens the study as its writer, so a bad input exits
+with code 2 and writes nothing. A relaunch with every key done (``all_done``) exits 0
+without starting Ray. Otherwise it sizes the worker pool to the cluster
+(``sweeper.run._resources``), opens the study as its writer (a failure then, an outage past
+the grace or a full disk, is one line too), claims it, gives every plan key that is not
+done a WAITING trial (``StudyStore.sync``), measures the random agent once per study
+(``sweeper.run._random_agent``), and hands the keys to the ``sweeper.run._driver.Driver`` loop.
+
+Ctrl-C or SIGTERM, at any moment of a launch, stops the workers and marks the trials in
+flight ``interrupted``; a relaunch resumes them from their checkpoints. Exit codes: 0 all
+done, 1 some trials failed, 2 bad input, 3 another driver runs the study (busy), 130
+interrupted. What trials print goes to Ray's worker logs (``/tmp/ray/session_latest/logs``),
+not to the progress display.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import signal
+import sys
+from collections.abc import Callable, Iterator
+from typing import Any, TextIO
+
+import optuna
+
+from agent.envs import env_class
+from agent.metrics import metric_key
+from sweeper.plan import (
+    HALVING_ATTR,
+    Curves,
+    InBackground,
+    Ladder,
+    Plan,
+    TrialEstimate,
+    build_plan,
+    in_spec_order,
+    summary_lines,
+)
+from sweeper.run import _random_agent as random_agent
+from sweeper.run._execution import WorkerPool, start_ray, stop_ray
+from sweeper.run._progress import LaunchProgress
+from sweeper.run._resources import cannot_reach_message, local_cpus, pool_size
+from sweeper.spec import StudySpec, load_spec, plural
+from sweeper.storage import (
+    DONE_STATES,
+    Heartbeat,
+    NoStudy,
+    StorageError,
+    StudyBusy,
+    StudyStore,
+    check_storage,
+    check_writable,
+    code_revision,
+    current_trials,
+    curve_of,
+    finished,
+    ledger,
+    open_study,
+    package_versions,
+    redact,
+)
+
+#: what a driver runs once it holds the study: its plan, bound to the study
+Stage = Callable[[StudySpec, StudyStore], Plan]
+#: seconds between the driver's heartbeats in the study
+HEARTBEAT_SECONDS = 15.0
+#: exit code of a launch refused because another live driver runs the study
+EXIT_BUSY = 3
+#: seconds each part of a trial is timed for the launch's estimate (``sweeper plan``
+#: takes longer over it: 0.5 s)
+CALIBRATION_SECONDS = 0.1
+
+
+def prepare(
+    spec: StudySpec | str | os.PathLike[str],
+    storage: str | None = None,
+    address: str | None = None,
+    max_concurrent: int | None = None,
+) -> tuple[StudySpec, Plan]:
+    """Validate the spec (or the spec file) with its overrides, build its plan and check
+    the storage.
+
+    Raises ``SpecError`` or ``StorageError`` (both ValueErrors naming the field); writes
+    nothing anywhere.
+    """
+    if not isinstance(spec, StudySpec):
+        spec = load_spec(spec)
+    if (storage, address, max_concurrent) != (None, None, None):
+        spec = spec.with_overrides(storage=storage, address=address, max_concurrent=max_concurrent)
+    plan = build_plan(spec)
+    check_storage(spec.storage_url)
+    return spec, plan
+
+
+def study_attrs(spec: StudySpec, plan: Plan) -> dict[str, Any]:
+    """The study user attrs (docs/contracts.md, "Storage conventions")."""
+    return {
+        "spec": spec.model_dump(mode="json"),
+        "plan_hash": plan.hash,
+        "plan": plan.keys(),
+        "versions": package_versions(),
+        "revision": code_revision(),
+        "env": spec.env.name,
+        "metric_names": list(report_metric_names(spec.env.name)),
+    }
+
+
+def report_metric_names(env: str) -> tuple[str, ...]:
+    """The metric keys a trial on ``env`` reports (docs/contracts.md, "One trial")."""
+    return tuple(metric_key(name) for name in env_class(env).metric_names)
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGTERM, handled like Ctrl-C."""
+
+
+def _raise_interrupted(signum: int, frame: Any) -> None:
+    raise Interrupted()
+
+
+@contextlib.contextmanager
+def sigterm_stops() -> Iterator[None]:
+    """Inside the block SIGTERM raises ``Interrupted`` (a KeyboardInterrupt), so it stops a
+    launch as Ctrl-C does; the handler before it comes back after. Outside the main
+    thread, which alone receives signals, it changes nothing."""
+    try:
+        previous = signal.signal(signal.SIGTERM, _raise_interrupted)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def launch(
+    spec: StudySpec,
+    plan: Plan,
+    *,
+    train: Callable[..., Any] | None = None,
+    stream: TextIO | None = None,
+    stage: Stage | None = None,
+    skip: frozenset[str] = frozenset(),
+) -> int:
+    """Run (or resume) the study of a validated ``spec``; return the exit code.
+
+    The database must be writable and Ray reachable before anything is written. A Ray that
+    is already initialised is used and left running; otherwise one is started (local, or
+    ``execution.address``) and shut down at the end. ``train`` replaces ``agent.train`` in
+    the workers (tests). ``stage`` gives the plan to run once the study is claimed
+    (default: the search plan; ``sweeper.run.cli_confirm``: the confirmation stage); a StorageError
+    from it exits 2. ``skip``: methods this launch leaves out (``sweeper launch
+    --skip-missing``): their keys are synced like the others, so they stay left in the
+    ledger, and are not run; the plan, and its hash, stay whole. SIGTERM raises
+    ``Interrupted`` throughout.
+    """
+    stream = sys.stderr if stream is None else stream
+    with sigterm_stops():
+        try:
+            check_writable(spec.storage_url)
+            study = read_study(spec, plan)
+        except StorageError as e:
+            print(f"sweeper launch: {e}", file=stream)
+            return 2
+        runs = without(plan, skip)
+        if stage is None and all_done(spec, runs, study):  # a relaunch with nothing left: no Ray
+            total = done = len(plan.entries)
+            if skip and study is not None:  # the skipped keys an earlier launch ran count
+                done = sum(c.done for c in ledger(plan.keys(), study[0], False).values())
+            print(
+                f"study {spec.study!r} in {redact(spec.storage_url)}: {done} of {total} "
+                f"trials done, 0 to run{skipped_note(spec, plan, skip)}",
+                file=stream,
+            )
+            return 0
+        # the calibration runs while Ray and the workers start
+        estimate = None if stage is not None else start_estimate(runs, study)
+        try:
+            return _start_ray_and_launch(spec, plan, train, stream, stage, estimate, skip)
+        finally:  # a launch that ends first (busy, interrupted, ...) ends the calibration
+            if estimate is not None:
+                estimate.stop()
+
+
+def _start_ray_and_launch(
+    spec: StudySpec,
+    plan: Plan,
+    train: Callable[..., Any] | None,
+    stream: TextIO,
+    stage: Stage | None,
+    estimate: InBackground | None,
+    skip: frozenset[str],
+) -> int:
+    """Connect to Ray (starting a local one unless ``execution.address`` names a cluster),
+    run the study on it, and shut down a Ray this call started."""
+    address = spec.execution.address
+    try:
+        started_ray = start_ray(address, num_cpus=local_cpus(spec.execution))
+    except SystemExit:  # Ray's own SIGTERM handlers, set while it starts, exit this way
+        stop_ray()
+        raise Interrupted() from None
+    except Exception as e:  # ConnectionError, an auth error, ...
+        print(cannot_reach_message(address, e), file=stream)
+        return 2
+    try:
+        return _launch_on_ray(spec, plan, train, stream, stage, estimate, skip)
+    finally:
+        if started_ray:
+            stop_ray()
+
+
+def read_study(spec: StudySpec, plan: Plan) -> tuple[list[Any], dict[str, Any]] | None:
+    """The study's trials and user attrs, read read-only before Ray starts; None when there
+    is nothing to read yet (``NoStudy``). Raises StorageError when the database cannot be
+    used (damaged, launched with another plan, out for longer than the grace)."""
+    try:
+        with open_study(
+            spec.storage_url,
+            spec.study,
+            write=False,
+            plan_hash=plan.hash,
+            grace=spec.execution.storage_grace,
+        ) as store:
+            return store.trials(), store.attrs
+    except NoStudy:
+        return None
+
+
+def all_done(spec: StudySpec, plan: Plan, study: tuple[list[Any], dict[str, Any]] | None) -> bool:
+    """Whether the study (``read_study``) holds every key of ``plan`` done, and its random
+    agent measured if the spec asks for it."""
+    if study is None:
+        return False
+    trials, attrs = study
+    if spec.random_episodes and random_agent.ATTR not in attrs:
+        return False
+    return all(c.done == c.planned for c in ledger(plan.keys(), trials, False).values())
+
+
+def _launch_on_ray(
+    spec: StudySpec,
+    plan: Plan,
+    train: Callable[..., Any] | None,
+    stream: TextIO,
+    stage: Stage | None,
+    estimate: InBackground | None = None,
+    skip: frozenset[str] = frozenset(),
+) -> int:
+    """Size the worker pool to the Ray cluster, start it and run the study."""
+    execution = spec.execution
+    size = pool_size(execution, len(without(plan, skip).entries), stream)
+    if size is None:
+        return 2
+    # the workers start (importing torch and the env) while the driver opens the study
+    pool = WorkerPool(
+        size,
+        cpus=execution.cpus_per_trial,
+        gpus=execution.gpus_per_trial,
+        train=train,
+        env=spec.env.name,
+        stall_timeout=execution.stall_timeout,
+    )
+    try:
+        return _run_study(spec, plan, pool, stream, stage, estimate, skip)
+    finally:
+        pool.shutdown()
+
+
+def _run_study(
+    spec: StudySpec,
+    plan: Plan,
+    pool: WorkerPool,
+    stream: TextIO,
+    stage: Stage | None = None,
+    estimate: InBackground | None = None,
+    skip: frozenset[str] = frozenset(),
+) -> int:
+    """Open the study as its driver, its heartbeat beating until it lets go; run it."""
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    attrs = study_attrs(spec, plan)
+    grace = spec.execution.storage_grace
+    try:
+        with open_study(
+            spec.storage_url, spec.study, write=True, attrs=attrs, grace=grace
+        ) as store:
+            try:
+                store.claim_driver()
+            except StudyBusy as e:
+                print(f"sweeper launch: {e}", file=stream)
+                return EXIT_BUSY
+            try:
+                with store.heartbeats(HEARTBEAT_SECONDS) as beat:
+                    if store.attrs.get("revision") != attrs["revision"]:
+                        print(
+                            f"sweeper launch: note: the study began at code revision "
+                            f"{store.attrs.get('revision')}; this is {attrs['revision']}",
+                            file=stream,
+                        )
+                    return _sync_and_drive(spec, store, pool, beat, stream, stage, estimate, skip)
+            except StorageError as e:  # the stage cannot be run (sweeper confirm)
+                print(f"sweeper {'launch' if stage is None else 'confirm'}: {e}", file=stream)
+                return 2
+            except StudyBusy as e:  # a heartbeat found another driver: this one looked dead
+                print(f"sweeper launch: stopped: {e}", file=stream)
+                return EXIT_BUSY
+            finally:
+                store.release_driver()
+    except StorageError as e:  # opening or creating the study
+        print(f"sweeper launch: {e}", file=stream)
+        return 2
+
+
+def _sync_and_drive(
+    spec: StudySpec,
+    store: StudyStore,
+    pool: WorkerPool,
+    beat: Heartbeat,
+    stream: TextIO,
+    stage: Stage | None = None,
+    estimate: InBackground | None = None,
+    skip: frozenset[str] = frozenset(),
+) -> int:
+    """Give the plan's keys their trials, then run what is left (but ``skip``'s)."""
+    # bound to the study: its checkpoints are its own
+    plan = build_plan(spec, study_uid=store.study_uid) if stage is None else stage(spec, store)
+    todo = store.sync(plan.entries, plan.hash)
+    skipped = sum(entry.method in skip for entry, _ in todo)
+    todo = [(entry, trial) for entry, trial in todo if entry.method not in skip]
+    random_agent.record_random_agent(spec, store, stream)
+    total = len(plan.entries)
+    print(
+        f"study {spec.study!r} in {redact(spec.storage_url)}: "
+        f"{total - len(todo) - skipped} of {total} trials done, {len(todo)} to run"
+        f"{skipped_note(spec, plan, skip)}",
+        file=stream,
+    )
+    if not todo:
+        return 0
+    pool.shrink(len(todo))
+    estimates = None if estimate is None else print_estimate(spec, plan, estimate, stream)
+    progress = LaunchProgress(
+        spec.study, in_spec_order(without(plan, skip).keys(), spec.methods),
+        spec.budget.env_steps, stream,
+        estimates=estimates, workers=len(pool),
+    )  # fmt: skip
+    ladder, curves = halving_state(plan, store)
+    # here, not at the top: the driver loads all it runs (torch, the dashboard's figures)
+    # before its loop, and ``prepare`` (spec checks) stays without them
+    from sweeper.run._driver import Driver
+
+    return Driver(spec, store, pool, progress, beat, stream, ladder, curves).run(todo)
+
+
+def halving_state(plan: Plan, store: StudyStore) -> tuple[Ladder | None, Curves]:
+    """A plan with successive halving: its ladder, with the decisions the study holds, and
+    the curves of its done keys (what later decisions read with the new ones)."""
+    if plan.schedule is None:
+        return None, {}
+    entries = plan.entries
+    ladder = Ladder(
+        plan.schedule,
+        configs={e.config_id for e in entries},
+        seeds={e.seed for e in entries},
+        methods={e.method for e in entries},
+        decisions=store.attrs.get(HALVING_ATTR),
+    )
+    planned = {e.key: e for e in entries}
+    curves = {}
+    for key, trial in current_trials(store.trials()).items():
+        curve = curve_of(trial)
+        if key in planned and trial.state.name in DONE_STATES and curve:
+            entry = planned[key]
+            curves[(entry.method, entry.config_id, entry.seed)] = (
+                curve["step"],
+                curve["success_rate"],
+            )
+    return ladder, curves
+
+
+def without(plan: Plan, skip: frozenset[str]) -> Plan:
+    """``plan`` without the entries of the methods in ``skip`` (its hash unchanged)."""
+    if not skip:
+        return plan
+    return dataclasses.replace(plan, entries=tuple(e for e in plan.entries if e.method not in skip))
+
+
+def skipped_note(spec: StudySpec, plan: Plan, skip: frozenset[str]) -> str:
+    """What a launch's summary line adds when it skips methods (``--skip-missing``,
+    ``--only``)."""
+    if not skip:
+        return ""
+    skipped = sum(e.method in skip for e in plan.entries)
+    methods = ", ".join(m for m in spec.methods if m in skip)
+    return f"; {methods} not run now ({plural(skipped, 'trial')}, left for a later launch)"
+
+
+def start_estimate(plan: Plan, study: tuple[list[Any], dict[str, Any]] | None) -> InBackground:
+    """Start estimating the trials of ``plan`` not done in ``study`` (``read_study``)."""
+    done, measured = finished(study[0] if study else [], plan.keys())
+    left = [e for e in plan.entries if e.key not in done]
+    return InBackground(left, measured, CALIBRATION_SECONDS)
+
+
+def print_estimate(
+    spec: StudySpec, plan: Plan, estimate: InBackground, stream: TextIO
+) -> dict[str, TrialEstimate] | None:
+    """Print what the trials left will cost (``sweeper.plan._estimate``: from the study's finished
+    trials, else a quick calibration) before they start; return the estimates, or None when
+    they could not be made (the launch goes on without them)."""
+    estimates = estimate.result()
+    if isinstance(estimates, BaseException):  # a calibration that fails must not stop a study
+        print(f"sweeper launch: no estimate: {type(estimates).__name__}: {estimates}", file=stream)
+        return None
+    done = {e.key for e in plan.entries if e.key not in estimates}
+    lines = summary_lines(plan.entries, done, estimates, spec.execution, estimate.seconds)
+    print("\n".join(f"estimate: {line}" for line in lines), file=stream)
+    return estimates

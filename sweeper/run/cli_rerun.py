@@ -1,0 +1,172 @@
+"""``sweeper rerun SPEC KEY``: run one recorded trial again from its plan entry and say
+whether its curve is the recorded one, exactly.
+
+A published study promises that anyone can re-run any of its trials bit-exactly. The
+trial runs here in this process, with the parameters and seed its plan entry gives,
+without a checkpoint, a video or a write to the study (which is read read-only), and every
+metric at every evaluation step is compared with the recorded curve as floats, not to a
+tolerance. A trial is bit-exact on the machine it ran on, not across machines (PyTorch's
+CPU kernels round differently by vendor and instruction set: ``agent.machine``), so the
+machines each run of the trial was recorded on are shown beside this one: a difference on
+another machine is expected, on the same machine it is a bug.
+
+Exit codes: 0 the same curve, 1 another curve, 2 the study, key or trial cannot be used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import difflib
+import math
+import sys
+import time
+from typing import TYPE_CHECKING, Any
+
+from sweeper.plan import CONFIRM, PlanEntry, build_plan, confirm_plan
+from sweeper.spec import plural
+from sweeper.storage import (
+    current_trials,
+    curve_of,
+    describe_machine,
+    open_study,
+    redact,
+    stored_files,
+    trial_attr,
+)
+
+if TYPE_CHECKING:
+    from sweeper.spec import StudySpec
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The key of the trial to re-run (``sweeper.cli`` adds the spec and --storage)."""
+    parser.add_argument("key", help="the trial's plan key, e.g. pixel/0/1 (method/config/seed)")
+
+
+def first_difference(recorded: dict[str, list[float]], rerun: dict[str, list[float]]) -> str | None:
+    """Where two curves (``{"step": [...], metric: [...]}``) first differ, in words, or
+    None when every metric is the same float at every step (NaN equals NaN: a diverged
+    trial's filler). Only the recorded steps and metrics are compared."""
+    if list(rerun.get("step", [])) != list(recorded["step"]):
+        return f"evaluation steps {rerun.get('step')} instead of the recorded {recorded['step']}"
+    for index, step in enumerate(recorded["step"]):
+        for metric in sorted(set(recorded) - {"step"}):
+            want = float(recorded[metric][index])
+            if metric not in rerun:
+                return f"no {metric} (recorded: {want!r})"
+            got = float(rerun[metric][index])
+            if got != want and not (math.isnan(got) and math.isnan(want)):
+                return f"step {step}, {metric}: {got!r} (recorded: {want!r})"
+    return None
+
+
+def machine_lines(recorded: list[dict[str, Any]] | None, here: dict[str, Any]) -> list[str]:
+    """The machines the trial's runs were recorded on, this one, and what follows."""
+    recorded = recorded or []
+    lines = [f"recorded on: {describe(m)} (from step {m['from_step']})" for m in recorded]
+    if not recorded:
+        lines.append("recorded on: not recorded (the study ran before machines were recorded)")
+    elif recorded[0]["from_step"] != 0:
+        lines.append(f"the runs before step {recorded[0]['from_step']} were not recorded")
+    lines.append(f"this machine: {describe(here)}")
+    whole = bool(recorded) and recorded[0]["from_step"] == 0
+    if whole and all({k: v for k, v in m.items() if k != "from_step"} == here for m in recorded):
+        lines.append("the same machine: the curve should be the recorded one")
+    else:
+        lines.append("another machine (or unknown): PyTorch's kernels round differently there, "
+                     "so the curve may differ (agent/machine.py)")  # fmt: skip
+    return lines
+
+
+#: one line for a machine: CPU name and id, kernels, torch, GPU
+describe = describe_machine
+
+
+def run(spec: StudySpec, args: argparse.Namespace) -> int:
+    """``sweeper rerun``: exit 0 (the same curve), 1 (another) or 2 (cannot be done)."""
+    try:
+        entry, trial = _recorded(spec, args.key)
+    except ValueError as e:  # StorageError, NoStudy, an unknown key or an unfinished trial
+        print(f"sweeper rerun: {e}", file=sys.stderr)
+        return 2
+    recorded = curve_of(trial)
+    if trial.state.name == "WAITING":
+        print(f"sweeper rerun: {args.key} has not started yet: nothing to compare with",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    if trial.state.name not in ("COMPLETE", "PRUNED") or not recorded:
+        print(
+            f"sweeper rerun: {args.key} is not done (trial {trial.number} is "
+            f"{trial.state.name}): there is no finished curve to compare with",
+            file=sys.stderr,
+        )
+        return 2
+
+    import torch
+
+    import agent
+    from agent.machine import describe as this_machine
+    from encoders.torch_base import resolve_device
+
+    config = entry.trial_config
+    last = recorded["step"][-1]
+    config = dataclasses.replace(
+        config,
+        checkpoint_dir=None,
+        video_steps=(),
+        stop_at=last if last < config.total_steps else None,  # a trial halving stopped
+    )
+    here = this_machine(resolve_device(config.device))
+    print(f"study {spec.study!r} in {redact(spec.storage_url)}: {args.key} (trial {trial.number})")
+    print("\n".join(machine_lines(trial_attr(trial, "machines"), here)))
+    print(f"re-running {config.total_steps if last == config.total_steps else last} env steps "
+          f"of {config.method} on {config.env} ...", flush=True)  # fmt: skip
+    start = time.perf_counter()
+
+    def report(step: int, metrics: dict[str, float]) -> None:
+        index = recorded["step"].index(step) if step in recorded["step"] else None
+        want = recorded["success_rate"][index] if index is not None else float("nan")
+        print(
+            f"  step {step:>7}: success {metrics['success_rate']:.2f} (recorded {want:.2f}), "
+            f"{time.perf_counter() - start:.0f} s",
+            flush=True,
+        )
+
+    torch.set_num_threads(config.threads)
+    try:
+        result = agent.train(config, report)
+    except (ValueError, OSError) as e:  # e.g. vgg's weights file is not on this machine
+        print(f"sweeper rerun: {args.key} cannot run here: {e}", file=sys.stderr)
+        return 2
+    curve = {"step": list(result.steps), **{k: list(v) for k, v in result.metrics.items()}}
+    difference = first_difference(recorded, curve)
+    if difference is None:
+        print(f"the same curve: every metric at all {plural(len(recorded['step']), 'step')} "
+              "is the recorded float")  # fmt: skip
+        return 0
+    print(f"another curve: first difference at {difference}")
+    return 1
+
+
+def _recorded(spec: StudySpec, key: str) -> tuple[PlanEntry, Any]:
+    """The plan entry of ``key`` (a search or confirmation key) and its current trial;
+    ValueError when the study, the key or its trial does not exist."""
+    search = build_plan(stored_files(spec))
+    grace = spec.execution.storage_grace
+    with open_study(spec.storage_url, spec.study, write=False, plan_hash=search.hash,
+                    grace=grace) as store:  # fmt: skip
+        plans = [search]
+        confirm = store.attrs.get(CONFIRM)
+        if confirm:
+            configs = {m: [int(c) for c in ids] for m, ids in confirm["configs"].items()}
+            plans.append(confirm_plan(search, configs, tuple(confirm["seeds"])))
+        entries = {e.key: e for plan in plans for e in plan.entries}
+        if key not in entries:
+            close = difflib.get_close_matches(key, entries, n=3)
+            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            raise ValueError(f"{key!r} is not a key of study {spec.study!r}{hint}")
+        trial = current_trials(store.trials()).get(key)
+    if trial is None:
+        raise ValueError(f"{key} has not run yet in study {spec.study!r}")
+    return entries[key], trial
