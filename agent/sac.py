@@ -70,7 +70,18 @@ class ConvEncoder(nn.Module):
     def forward(self, images: Tensor) -> Tensor:
         # NHWC -> NCHW is a channels-last view; flatten back in HWC order without a copy
         x = images.permute(0, 3, 1, 2).float().div_(255.0)
+        if not self.channels_last:
+            x = x.contiguous()
         return self.convs(x).permute(0, 2, 3, 1).flatten(1)
+
+    @property
+    def channels_last(self) -> bool:
+        return self.convs[0].weight.is_contiguous(memory_format=torch.channels_last)
+
+    def use_layout(self, channels_last: bool) -> None:
+        """Run the convolutions channels-last (oneDNN's fast layout on x86 CPUs; the
+        default) or NCHW; the same numbers up to floating-point order."""
+        self.to(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
 
 
 def head(in_dim: int, feature_dim: int, pixels: bool) -> nn.Module:

@@ -1,29 +1,66 @@
-"""Update speed against the machine's limit.
+"""Update speed against the machine's limit, in every layout and precision.
 
-Times one full SAC-DrQ update (augmentation, critic, actor, temperature, target) at
-84x84 and 48x48, batch 256, and prints the achieved GFLOP/s of the convolution and
-matmul FLOPs it does (counted by ``torch.utils.flop_counter``) next to a dense fp32
-matmul measured in the same run with the same threads. Target: >= 50% of the matmul.
+Prints the CPU (model, and whether it has native bf16: AMX or AVX512-BF16), a dense
+2048^3 matmul's GFLOP/s in fp32 and in bf16 measured in the same run with the same
+threads (the peaks), then one full SAC-DrQ update (augmentation, critic, actor,
+temperature, target; ``actor_update_every=1``) per row: 84x84 and 48x48, batch 32, 128
+and 256, 32 filters, fp32 and under bf16 autocast, the convolutions channels-last (the
+agent's default) and NCHW. Each row: ms per update (median), the convolution and matmul
+GFLOP it does (``torch.utils.flop_counter``), GFLOP/s, and that as a % of the matching
+peak. Targets (issue 34): fp32 at batch 256 >= 80% of the fp32 peak, bf16 >= 35% of the
+bf16 peak. Last, with ``--trial-steps N``, a real trial at ``bench_learning.FETCH_CPU``
+cut to N env steps (``bench_gpu_trial``'s measurement): its env steps per second while
+learning.
 
-Run: ``.venv/bin/python benchmarks/bench_update_speed.py [--threads 2] [--repeats 10]``
+Run: ``./run python benchmarks/bench_update_speed.py [--threads 1] [--repeats 5]
+[--sizes 84,48] [--batches 32,128,256] [--trial-steps 1500]``
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
 from agent.config import SACConfig
+from agent.machine import CPUINFO, cpu_fields
 from agent.sac import SAC
 
+PRECISIONS = ("fp32", "bf16")
+#: the targets of issue 34, as a fraction of the matching matmul peak
+TARGETS = {"fp32": 0.80, "bf16": 0.35}
 
-def matmul_gflops(n: int = 2048, repeats: int = 10) -> float:
-    a, b = torch.randn(n, n), torch.randn(n, n)
+
+def cpu_line() -> str:
+    """The CPU model and its native bf16 instructions (the flags /proc/cpuinfo lists)."""
+    try:
+        text = CPUINFO.read_text()
+    except OSError:
+        return "CPU: unknown (no /proc/cpuinfo)"
+    fields = cpu_fields(text)
+    flags = next((line.split(":", 1)[1].split() for line in text.splitlines()
+                  if line.startswith("flags")), [])  # fmt: skip
+    native = [f for f in ("amx_bf16", "avx512_bf16") if f in flags]
+    bf16 = (
+        f"native bf16: {', '.join(native)}" if native else "no native bf16 (no AMX, no AVX512-BF16)"
+    )
+    return (f"CPU: {fields.get('model name', '?')} ({fields.get('vendor_id', '?')} family "
+            f"{fields.get('cpu family', '?')} model {fields.get('model', '?')}); {bf16}; "
+            f"torch kernels {torch.backends.cpu.get_cpu_capability()}")  # fmt: skip
+
+
+def matmul_gflops(dtype: torch.dtype, n: int = 2048, repeats: int = 10) -> float:
+    a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
     a @ b  # warm-up
     start = time.perf_counter()
     for _ in range(repeats):
@@ -54,35 +91,83 @@ def median_seconds(call: Callable[[], object], repeats: int) -> float:
     return float(np.median(seconds))
 
 
-def time_update(size: int, batch_size: int, repeats: int) -> tuple[float, float]:
-    """(seconds per update, counted GFLOP per update)."""
-    cfg = SACConfig(batch_size=batch_size)
+def time_update(
+    size: int, batch_size: int, repeats: int, precision: str, channels_last: bool
+) -> tuple[float, float]:
+    """(seconds per update, counted GFLOP per update) of one full update."""
+    cfg = SACConfig(batch_size=batch_size, num_filters=32, actor_update_every=1)
     agent = SAC((size, size, 3), (size, size, 3), 4, cfg, torch.device("cpu"))
+    agent.encoder.use_layout(channels_last)
     batch = random_batch(size, batch_size, np.random.default_rng(0))
+
+    def update() -> None:
+        autocast = torch.autocast("cpu", dtype=torch.bfloat16)
+        with autocast if precision == "bf16" else contextlib.nullcontext():
+            agent.update(batch)
+
     with FlopCounterMode(display=False) as counter:
-        agent.update(batch)  # also the warm-up
-    return median_seconds(lambda: agent.update(batch), repeats), counter.get_total_flops() / 1e9
+        update()  # also the warm-up
+    update()
+    return median_seconds(update, repeats), counter.get_total_flops() / 1e9
+
+
+def trial_rate(steps: int, threads: int) -> str:
+    """A real trial at FETCH_CPU cut to ``steps`` env steps: env steps per second while it
+    learns (``bench_gpu_trial.run_together``, one trial)."""
+    from bench_gpu_trial import measured_config, run_together
+    from bench_learning import FETCH_CPU
+
+    (phases,) = run_together(measured_config(FETCH_CPU, steps, "cpu", threads), 1)
+    return (f"trial at FETCH_CPU (84x84, 16 filters, batch 32, 1 update per step), "
+            f"{steps} env steps: {phases.learn_rate:.1f} env steps/s while learning, "
+            f"{phases.seed_rate:.0f} in its random seed phase")  # fmt: skip
+
+
+def ints(text: str) -> list[int]:
+    return [int(part) for part in text.split(",")]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    parser.add_argument("--repeats", type=int, default=10)
-    parser.add_argument("--batch-size", type=int, default=256)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--sizes", type=ints, default=[84, 48])
+    parser.add_argument("--batches", type=ints, default=[32, 128, 256])
+    parser.add_argument("--trial-steps", type=int, default=0, help="0: no trial")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    print(f"torch {torch.__version__}, {args.threads} thread(s), batch {args.batch_size}")
-    peak_before = matmul_gflops()
-    rows = [(size, *time_update(size, args.batch_size, args.repeats)) for size in (84, 48)]
-    peak = max(peak_before, matmul_gflops())
-    print(f"dense fp32 matmul 2048^3: {peak:.1f} GFLOP/s")
-    for size, seconds, gflop in rows:
+    print(cpu_line())
+    print(f"torch {torch.__version__}, {args.threads} thread(s), 32 filters, median of "
+          f"{args.repeats} updates")  # fmt: skip
+    dtypes = {"fp32": torch.float32, "bf16": torch.bfloat16}
+    peaks = {name: matmul_gflops(dtype) for name, dtype in dtypes.items()}
+    rows = []
+    for size in args.sizes:
+        for batch_size in args.batches:
+            for precision in PRECISIONS:
+                for channels_last in (True, False):
+                    seconds, gflop = time_update(
+                        size, batch_size, args.repeats, precision, channels_last
+                    )
+                    rows.append((size, batch_size, precision, channels_last, seconds, gflop))
+    # the peaks again after the rows: the higher of the two, as the machine allowed
+    peaks = {name: max(peaks[name], matmul_gflops(dtype)) for name, dtype in dtypes.items()}
+    print(f"dense matmul 2048^3: fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} "
+          "GFLOP/s")  # fmt: skip
+    print("| image | batch | precision | layout | ms/update | GFLOP | GFLOP/s | % of peak |")
+    print("|---|---|---|---|---|---|---|---|")
+    for size, batch_size, precision, channels_last, seconds, gflop in rows:
         rate = gflop / seconds
-        print(
-            f"{size}x{size}: {seconds * 1000:.0f} ms/update, {gflop:.1f} GFLOP counted, "
-            f"{rate:.1f} GFLOP/s = {100 * rate / peak:.0f}% of matmul "
-            f"({'PASS' if rate >= 0.5 * peak else 'FAIL'} at the 50% target)"
-        )
+        share = rate / peaks[precision]
+        target = ""
+        if batch_size == 256:
+            met = "met" if share >= TARGETS[precision] else "not met"
+            target = f" (target {TARGETS[precision]:.0%}: {met})"
+        layout = "channels-last" if channels_last else "NCHW"
+        print(f"| {size}x{size} | {batch_size} | {precision} | {layout} | {seconds * 1000:.0f} | "
+              f"{gflop:.1f} | {rate:.1f} | {share:.0%}{target} |")  # fmt: skip
+    if args.trial_steps:
+        print(trial_rate(args.trial_steps, args.threads))
 
 
 if __name__ == "__main__":

@@ -180,3 +180,23 @@ def test_bad_trial_config_names_the_field() -> None:
     with pytest.raises(ValueError, match="device"):
         TrialConfig(device="tpu")
     assert SACConfig(hidden_sizes=[8, 8]).hidden_sizes == (8, 8)
+
+
+def test_an_update_in_either_conv_layout_gives_the_same_losses() -> None:
+    """Channels-last (the default) and NCHW differ only in floating-point order: over
+    three updates from the same weights, batch and random shifts, every loss agrees to
+    1e-5 relative, and the layout really changed."""
+    losses = {}
+    for channels_last in (True, False):
+        torch.manual_seed(0)
+        agent = pixel_agent()
+        agent.encoder.use_layout(channels_last)
+        assert agent.encoder.channels_last is channels_last
+        torch.manual_seed(1)
+        losses[channels_last] = [
+            {k: float(v) for k, v in agent.update(batch(32, seed=i)).items()} for i in range(3)
+        ]
+    assert losses[True][0].keys() >= {"critic_loss"}
+    for fast, plain in zip(losses[True], losses[False], strict=True):
+        for name in fast:
+            assert fast[name] == pytest.approx(plain[name], rel=1e-5, abs=1e-7), name
