@@ -141,6 +141,30 @@ def sigterm_stops() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+@dataclasses.dataclass
+class Launch:
+    """One launch, what each of its steps reads: the spec, the plan (whole: its hash is the
+    study's), the methods it leaves out, where it prints, the stage it runs once it holds
+    the study (None: the search plan), the workers' ``train`` (tests) and the cost
+    estimate running in the background (None: a stage, or none yet)."""
+
+    spec: StudySpec
+    plan: Plan
+    skip: frozenset[str]
+    stream: TextIO
+    stage: Stage | None
+    train: Callable[..., Any] | None
+    estimate: InBackground | None = None
+
+    @property
+    def runs(self) -> Plan:
+        """The plan's entries this launch runs (``skip``'s left out)."""
+        return without(self.plan, self.skip)
+
+    def say(self, line: str) -> None:
+        print(line, file=self.stream)
+
+
 def launch(
     spec: StudySpec,
     plan: Plan,
@@ -156,62 +180,52 @@ def launch(
     is already initialised is used and left running; otherwise one is started (local, or
     ``execution.address``) and shut down at the end. ``train`` replaces ``agent.train`` in
     the workers (tests). ``stage`` gives the plan to run once the study is claimed
-    (default: the search plan; ``sweeper.run.cli_confirm``: the confirmation stage); a StorageError
+    (default: the search plan; ``sweeper confirm``: the confirmation stage); a StorageError
     from it exits 2. ``skip``: methods this launch leaves out (``sweeper launch
-    --skip-missing``): their keys are synced like the others, so they stay left in the
-    ledger, and are not run; the plan, and its hash, stay whole. SIGTERM raises
+    --skip-missing``, ``--only``): their keys are synced like the others, so they stay left
+    in the ledger, and are not run; the plan, and its hash, stay whole. SIGTERM raises
     ``Interrupted`` throughout.
     """
-    stream = sys.stderr if stream is None else stream
+    run = Launch(spec, plan, skip, sys.stderr if stream is None else stream, stage, train)
     with sigterm_stops():
         try:
             check_writable(spec.storage_url)
             study = read_study(spec, plan)
         except StorageError as e:
-            print(f"sweeper launch: {e}", file=stream)
+            run.say(f"sweeper launch: {e}")
             return 2
-        runs = without(plan, skip)
-        if stage is None and all_done(spec, runs, study):  # a relaunch with nothing left: no Ray
+        if stage is None and all_done(spec, run.runs, study):  # nothing left: no Ray
             total = done = len(plan.entries)
             if skip and study is not None:  # the skipped keys an earlier launch ran count
                 done = sum(c.done for c in ledger(plan.keys(), study[0], False).values())
-            print(
+            run.say(
                 f"study {spec.study!r} in {redact(spec.storage_url)}: {done} of {total} "
-                f"trials done, 0 to run{skipped_note(spec, plan, skip)}",
-                file=stream,
+                f"trials done, 0 to run{skipped_note(run)}"
             )
             return 0
         # the calibration runs while Ray and the workers start
-        estimate = None if stage is not None else start_estimate(runs, study)
+        run.estimate = None if stage is not None else start_estimate(run.runs, study)
         try:
-            return _start_ray_and_launch(spec, plan, train, stream, stage, estimate, skip)
+            return _start_ray_and_launch(run)
         finally:  # a launch that ends first (busy, interrupted, ...) ends the calibration
-            if estimate is not None:
-                estimate.stop()
+            if run.estimate is not None:
+                run.estimate.stop()
 
 
-def _start_ray_and_launch(
-    spec: StudySpec,
-    plan: Plan,
-    train: Callable[..., Any] | None,
-    stream: TextIO,
-    stage: Stage | None,
-    estimate: InBackground | None,
-    skip: frozenset[str],
-) -> int:
+def _start_ray_and_launch(run: Launch) -> int:
     """Connect to Ray (starting a local one unless ``execution.address`` names a cluster),
     run the study on it, and shut down a Ray this call started."""
-    address = spec.execution.address
+    address = run.spec.execution.address
     try:
-        started_ray = start_ray(address, num_cpus=local_cpus(spec.execution))
+        started_ray = start_ray(address, num_cpus=local_cpus(run.spec.execution))
     except SystemExit:  # Ray's own SIGTERM handlers, set while it starts, exit this way
         stop_ray()
         raise Interrupted() from None
     except Exception as e:  # ConnectionError, an auth error, ...
-        print(cannot_reach_message(address, e), file=stream)
+        run.say(cannot_reach_message(address, e))
         return 2
     try:
-        return _launch_on_ray(spec, plan, train, stream, stage, estimate, skip)
+        return _launch_on_ray(run)
     finally:
         if started_ray:
             stop_ray()
@@ -245,18 +259,10 @@ def all_done(spec: StudySpec, plan: Plan, study: tuple[list[Any], dict[str, Any]
     return all(c.done == c.planned for c in ledger(plan.keys(), trials, False).values())
 
 
-def _launch_on_ray(
-    spec: StudySpec,
-    plan: Plan,
-    train: Callable[..., Any] | None,
-    stream: TextIO,
-    stage: Stage | None,
-    estimate: InBackground | None = None,
-    skip: frozenset[str] = frozenset(),
-) -> int:
+def _launch_on_ray(run: Launch) -> int:
     """Size the worker pool to the Ray cluster, start it and run the study."""
-    execution = spec.execution
-    size = pool_size(execution, len(without(plan, skip).entries), stream)
+    execution = run.spec.execution
+    size = pool_size(execution, len(run.runs.entries), run.stream)
     if size is None:
         return 2
     # the workers start (importing torch and the env) while the driver opens the study
@@ -264,28 +270,21 @@ def _launch_on_ray(
         size,
         cpus=execution.cpus_per_trial,
         gpus=execution.gpus_per_trial,
-        train=train,
-        env=spec.env.name,
+        train=run.train,
+        env=run.spec.env.name,
         stall_timeout=execution.stall_timeout,
     )
     try:
-        return _run_study(spec, plan, pool, stream, stage, estimate, skip)
+        return _run_study(run, pool)
     finally:
         pool.shutdown()
 
 
-def _run_study(
-    spec: StudySpec,
-    plan: Plan,
-    pool: WorkerPool,
-    stream: TextIO,
-    stage: Stage | None = None,
-    estimate: InBackground | None = None,
-    skip: frozenset[str] = frozenset(),
-) -> int:
+def _run_study(run: Launch, pool: WorkerPool) -> int:
     """Open the study as its driver, its heartbeat beating until it lets go; run it."""
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    attrs = study_attrs(spec, plan)
+    spec = run.spec
+    attrs = study_attrs(spec, run.plan)
     grace = spec.execution.storage_grace
     try:
         with open_study(
@@ -294,61 +293,55 @@ def _run_study(
             try:
                 store.claim_driver()
             except StudyBusy as e:
-                print(f"sweeper launch: {e}", file=stream)
+                run.say(f"sweeper launch: {e}")
                 return EXIT_BUSY
             try:
                 with store.heartbeats(HEARTBEAT_SECONDS) as beat:
                     if store.attrs.get("revision") != attrs["revision"]:
-                        print(
+                        run.say(
                             f"sweeper launch: note: the study began at code revision "
-                            f"{store.attrs.get('revision')}; this is {attrs['revision']}",
-                            file=stream,
+                            f"{store.attrs.get('revision')}; this is {attrs['revision']}"
                         )
-                    return _sync_and_drive(spec, store, pool, beat, stream, stage, estimate, skip)
+                    return _sync_and_drive(run, store, pool, beat)
             except StorageError as e:  # the stage cannot be run (sweeper confirm)
-                print(f"sweeper {'launch' if stage is None else 'confirm'}: {e}", file=stream)
+                run.say(f"sweeper {'launch' if run.stage is None else 'confirm'}: {e}")
                 return 2
             except StudyBusy as e:  # a heartbeat found another driver: this one looked dead
-                print(f"sweeper launch: stopped: {e}", file=stream)
+                run.say(f"sweeper launch: stopped: {e}")
                 return EXIT_BUSY
             finally:
                 store.release_driver()
     except StorageError as e:  # opening or creating the study
-        print(f"sweeper launch: {e}", file=stream)
+        run.say(f"sweeper launch: {e}")
         return 2
 
 
-def _sync_and_drive(
-    spec: StudySpec,
-    store: StudyStore,
-    pool: WorkerPool,
-    beat: Heartbeat,
-    stream: TextIO,
-    stage: Stage | None = None,
-    estimate: InBackground | None = None,
-    skip: frozenset[str] = frozenset(),
-) -> int:
+def _sync_and_drive(run: Launch, store: StudyStore, pool: WorkerPool, beat: Heartbeat) -> int:
     """Give the plan's keys their trials, then run what is left (but ``skip``'s)."""
+    spec, skip = run.spec, run.skip
     # bound to the study: its checkpoints are its own
-    plan = build_plan(spec, study_uid=store.study_uid) if stage is None else stage(spec, store)
+    if run.stage is None:
+        plan = build_plan(spec, study_uid=store.study_uid)
+    else:
+        plan = run.stage(spec, store)
+    run = dataclasses.replace(run, plan=plan)
     todo = store.sync(plan.entries, plan.hash)
     skipped = sum(entry.method in skip for entry, _ in todo)
     todo = [(entry, trial) for entry, trial in todo if entry.method not in skip]
-    random_agent.record_random_agent(spec, store, stream)
+    random_agent.record_random_agent(spec, store, run.stream)
     total = len(plan.entries)
-    print(
+    run.say(
         f"study {spec.study!r} in {redact(spec.storage_url)}: "
         f"{total - len(todo) - skipped} of {total} trials done, {len(todo)} to run"
-        f"{skipped_note(spec, plan, skip)}",
-        file=stream,
+        f"{skipped_note(run)}"
     )
     if not todo:
         return 0
     pool.shrink(len(todo))
-    estimates = None if estimate is None else print_estimate(spec, plan, estimate, stream)
+    estimates = None if run.estimate is None else print_estimate(run)
     progress = LaunchProgress(
-        spec.study, in_spec_order(without(plan, skip).keys(), spec.methods),
-        spec.budget.env_steps, stream,
+        spec.study, in_spec_order(run.runs.keys(), spec.methods),
+        spec.budget.env_steps, run.stream,
         estimates=estimates, workers=len(pool),
     )  # fmt: skip
     ladder, curves = halving_state(plan, store)
@@ -356,7 +349,7 @@ def _sync_and_drive(
     # before its loop, and ``prepare`` (spec checks) stays without them
     from sweeper.run._driver import Driver
 
-    return Driver(spec, store, pool, progress, beat, stream, ladder, curves).run(todo)
+    return Driver(spec, store, pool, progress, beat, run.stream, ladder, curves).run(todo)
 
 
 def halving_state(plan: Plan, store: StudyStore) -> tuple[Ladder | None, Curves]:
@@ -392,13 +385,13 @@ def without(plan: Plan, skip: frozenset[str]) -> Plan:
     return dataclasses.replace(plan, entries=tuple(e for e in plan.entries if e.method not in skip))
 
 
-def skipped_note(spec: StudySpec, plan: Plan, skip: frozenset[str]) -> str:
+def skipped_note(run: Launch) -> str:
     """What a launch's summary line adds when it skips methods (``--skip-missing``,
     ``--only``)."""
-    if not skip:
+    if not run.skip:
         return ""
-    skipped = sum(e.method in skip for e in plan.entries)
-    methods = ", ".join(m for m in spec.methods if m in skip)
+    skipped = sum(e.method in run.skip for e in run.plan.entries)
+    methods = ", ".join(m for m in run.spec.methods if m in run.skip)
     return f"; {methods} not run now ({plural(skipped, 'trial')}, left for a later launch)"
 
 
@@ -409,17 +402,16 @@ def start_estimate(plan: Plan, study: tuple[list[Any], dict[str, Any]] | None) -
     return InBackground(left, measured, CALIBRATION_SECONDS)
 
 
-def print_estimate(
-    spec: StudySpec, plan: Plan, estimate: InBackground, stream: TextIO
-) -> dict[str, TrialEstimate] | None:
-    """Print what the trials left will cost (``sweeper.plan._estimate``: from the study's finished
-    trials, else a quick calibration) before they start; return the estimates, or None when
-    they could not be made (the launch goes on without them)."""
-    estimates = estimate.result()
+def print_estimate(run: Launch) -> dict[str, TrialEstimate] | None:
+    """Print what the trials left will cost (``sweeper.plan``'s estimate: from the study's
+    finished trials, else a quick calibration) before they start; return the estimates, or
+    None when they could not be made (the launch goes on without them)."""
+    estimates = run.estimate.result()
     if isinstance(estimates, BaseException):  # a calibration that fails must not stop a study
-        print(f"sweeper launch: no estimate: {type(estimates).__name__}: {estimates}", file=stream)
+        run.say(f"sweeper launch: no estimate: {type(estimates).__name__}: {estimates}")
         return None
-    done = {e.key for e in plan.entries if e.key not in estimates}
-    lines = summary_lines(plan.entries, done, estimates, spec.execution, estimate.seconds)
-    print("\n".join(f"estimate: {line}" for line in lines), file=stream)
+    entries = run.plan.entries
+    done = {e.key for e in entries if e.key not in estimates}
+    lines = summary_lines(entries, done, estimates, run.spec.execution, run.estimate.seconds)
+    run.say("\n".join(f"estimate: {line}" for line in lines))
     return estimates
