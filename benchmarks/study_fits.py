@@ -32,7 +32,7 @@ def main() -> None:
     from sweeper.plan._entries import build_plan
     from sweeper.results._frame import load_study_frame, trial_rows
     from sweeper.spec._models import load_spec
-    from sweeper.storage._open import stored_files
+    from sweeper.storage import open_for_reading, stored_files
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("spec")
@@ -44,7 +44,8 @@ def main() -> None:
     if args.storage:
         spec = spec.with_overrides(storage=args.storage)
     torch.set_num_threads(1)
-    plan = build_plan(stored_files(spec))
+    with open_for_reading(spec) as store:
+        plan = build_plan(stored_files(spec, store))
     learned = {
         entry.key
         for entry in plan.entries

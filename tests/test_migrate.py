@@ -68,13 +68,13 @@ def readers_view(spec_path: Path):
     """What the readers get: the aggregation's frame, ``sweeper status``' lines, and every
     trial's state, value, intermediate values, curve and other user attrs."""
     spec = load_spec(spec_path)
-    plan = build_plan(spec)
     url = spec.storage_url
     with open_study(url, "ci", write=False) as store:
         trials = [(t.number, t.state, t.value, t.intermediate_values, curve_of(t),
                    {k: v for k, v in t.user_attrs.items() if k != CURVE_ATTR})
                   for t in store.trials()]  # fmt: skip
-    return load_study_frame(url, "ci"), status_lines("ci", url, plan.keys(), plan.hash), trials
+        status = status_lines(spec, store)
+    return load_study_frame(url, "ci"), status, trials
 
 
 @pytest.mark.parametrize("relaunched", [False, True], ids=["old", "old-and-new"])

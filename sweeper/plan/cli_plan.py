@@ -27,7 +27,14 @@ from sweeper.plan._estimate import (
 )
 from sweeper.plan._halving import env_steps_spent
 from sweeper.spec import plural
-from sweeper.storage import NoStudy, finished, open_study, redact, stored_files
+from sweeper.storage import (
+    NoStudy,
+    check_plan,
+    finished,
+    open_for_reading,
+    redact,
+    stored_files,
+)
 
 if TYPE_CHECKING:
     from sweeper.spec import StudySpec
@@ -36,19 +43,6 @@ if TYPE_CHECKING:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``sweeper plan`` has no options of its own (``sweeper.cli`` adds the spec and
     --storage)."""
-
-
-def study_finished(spec: StudySpec, plan: Plan) -> tuple[set[str], dict[str, float]]:
-    """``sweeper.storage.finished`` of the study, read read-only; nothing when it has not
-    been launched. Raises StorageError (a ValueError)."""
-    try:
-        with open_study(
-            spec.storage_url, spec.study, write=False, plan_hash=plan.hash,
-            grace=spec.execution.storage_grace,
-        ) as store:  # fmt: skip
-            return finished(store.trials(), plan.keys())
-    except NoStudy:
-        return set(), {}
 
 
 def plan_lines(
@@ -166,9 +160,13 @@ def run(spec: StudySpec, args: argparse.Namespace, stream: TextIO | None = None)
     cannot be read or was launched with another plan."""
     stream = sys.stdout if stream is None else stream
     try:
-        spec = stored_files(spec)  # a file path the study was launched with
-        plan = build_plan(spec)
-        done, measured = study_finished(spec, plan)
+        with open_for_reading(spec) as store:
+            spec = stored_files(spec, store)  # a file path the study was launched with
+            plan = build_plan(spec)
+            done, measured = set(), {}
+            if not isinstance(store, NoStudy):
+                check_plan(spec.study, store.attrs, plan.hash)
+                done, measured = finished(store.trials(), plan.keys())
     except ValueError as e:  # StorageError, a plan the spec cannot give
         print(f"sweeper plan: {e}", file=sys.stderr)
         return 2

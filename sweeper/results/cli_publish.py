@@ -37,10 +37,14 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from sweeper.results.cli_aggregate import aggregate
+from sweeper.results.cli_status import status_lines
 from sweeper.spec import plural
 from sweeper.storage import (
     DONE_STATES,
     StorageError,
+    StudyStore,
+    artifact_location,
     damage,
     damaged_error,
     is_damaged,
@@ -49,6 +53,7 @@ from sweeper.storage import (
     redact,
     resolve_url,
     sqlite_path,
+    trial_artifacts,
 )
 
 if TYPE_CHECKING:
@@ -100,54 +105,60 @@ def copy_database(source: Path, target: Path) -> None:
     partial.replace(target)
 
 
-def unfinished(url: str, study: str) -> tuple[int, int] | None:
-    """``(done, planned)`` trials of the published copy ``url`` (its plan, and the keys of a
+def unfinished(store: StudyStore) -> tuple[int, int] | None:
+    """``(done, planned)`` trials of the published copy (its plan, and the keys of a
     confirmation stage), or None when every planned trial is done. The copy is not
     driven: a trial RUNNING there is left, as a relaunch would count it."""
-    with open_study(url, study, write=False) as store:
-        attrs = store.attrs
-        keys = [*(attrs.get("plan") or []), *((attrs.get("confirm") or {}).get("keys") or [])]
-        counts = ledger(keys, store.trials(), driver_alive=False).values()
+    attrs = store.attrs
+    keys = [*(attrs.get("plan") or []), *((attrs.get("confirm") or {}).get("keys") or [])]
+    counts = ledger(keys, store.trials(), driver_alive=False).values()
     done, planned = sum(c.done for c in counts), sum(c.planned for c in counts)
     return None if done == planned else (done, planned)
 
 
-def settle_copy(url: str, study: str) -> Upgrade:
-    """Mark the copied study in ``url`` as not driven (its driver record released, as a
-    driver that stops releases it), then rewrite its trials recorded in an older format in
-    today's (``StudyStore.upgrade``)."""
-    with open_study(url, study, write=True, create=False) as store:
-        store.set_study_attr("driver", None)
-        return store.upgrade()
+def settle_copy(store: StudyStore) -> Upgrade:
+    """Mark the copied study as not driven (its driver record released, as a driver that
+    stops releases it), then rewrite its trials recorded in an older format in today's
+    (``StudyStore.upgrade``)."""
+    store.set_study_attr("driver", None)
+    return store.upgrade()
 
 
-def missing_videos(url: str, study: str, folder: Path) -> list[str]:
+def missing_videos(store: StudyStore, folder: Path) -> list[str]:
     """One line per video (artifact) of a finished trial (COMPLETE or PRUNED) whose file is
     not in ``folder``: the trial, its key, the file's name and id."""
-    from sweeper.storage import trial_artifacts
-
     lines = []
-    with open_study(url, study, write=False) as store:
-        for trial in store.trials():
-            if trial.state.name not in DONE_STATES:
-                continue
-            metas = trial_artifacts(store.storage, trial._trial_id)
-            for meta in sorted(metas, key=lambda meta: meta["filename"]):
-                if not (folder / meta["artifact_id"]).is_file():
-                    lines.append(
-                        f"trial {trial.number} ({trial.user_attrs.get('key')}): its video "
-                        f"{meta['filename']} is missing ({folder.name}/{meta['artifact_id']})"
-                    )
+    for trial in store.trials():
+        if trial.state.name not in DONE_STATES:
+            continue
+        metas = trial_artifacts(store.storage, trial._trial_id)
+        for meta in sorted(metas, key=lambda meta: meta["filename"]):
+            if not (folder / meta["artifact_id"]).is_file():
+                lines.append(
+                    f"trial {trial.number} ({trial.user_attrs.get('key')}): its video "
+                    f"{meta['filename']} is missing ({folder.name}/{meta['artifact_id']})"
+                )
     return lines
+
+
+def write_status(
+    copy: StudySpec, store: StudyStore, source: str, out: Path, missing: list[str]
+) -> None:
+    """``status.txt``: ``sweeper status`` of the copy (``copy``: the spec with the copy's
+    storage), where and when it was taken from, the missing videos."""
+    lines = status_lines(copy, store)
+    taken = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    with (out / "status.txt").open("w", encoding="utf-8") as stream:
+        print(f"study {copy.study!r} in {redact(copy.storage_url)}", file=stream)
+        print("\n".join(lines), file=stream)
+        print(f"copied from {redact(source)} at {taken}", file=stream)
+        for line in missing:
+            print(line, file=stream)
 
 
 def run(spec: StudySpec, args: argparse.Namespace) -> int:
     """``sweeper publish``: exit 0; 2 with one line; or 2 once published, with a line per
     missing video."""
-    from sweeper.results.cli_aggregate import aggregate
-    from sweeper.results.cli_status import run as status
-    from sweeper.storage import artifact_location
-
     out = Path(args.out) if args.out else Path("docs") / "studies" / spec.study
     try:
         source = sqlite_path(resolve_url(spec.storage_url))
@@ -163,24 +174,18 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
             raise StorageError(f"{database} is the study's own database: publish elsewhere")
         copy_database(source, database)
         url = f"sqlite:///{database}"
-        upgraded = settle_copy(url, spec.study)
         videos = Path(artifact_location(spec))
         copied = videos.is_dir()
         if copied:
             shutil.copytree(videos, out / "artifacts", dirs_exist_ok=True)
-        missing = missing_videos(url, spec.study, out / "artifacts")
-        published = spec.with_overrides(storage=url)
-        with (out / "status.txt").open("w", encoding="utf-8") as stream:
-            if status(published, args, stream) != 0:
-                raise StorageError(f"{database}: its ledger cannot be read (see above)")
-            taken = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
-            print(f"copied from {redact(spec.storage_url)} at {taken}", file=stream)
-            for line in missing:
-                print(line, file=stream)
+        with open_study(url, spec.study, write=True, create=False) as store:  # the copy
+            upgraded = settle_copy(store)
+            missing = missing_videos(store, out / "artifacts")
+            write_status(spec.with_overrides(storage=url), store, spec.storage_url, out, missing)
+            partial = unfinished(store)
         artifacts = str(out / "artifacts") if copied else None
         result = aggregate(url, spec.study, out / "aggregate", seed=spec.seed, dashboard=False,
                            artifacts=artifacts)  # fmt: skip
-        partial = unfinished(url, spec.study)
     except (ValueError, OSError, sqlite3.Error) as e:  # StorageError is a ValueError
         print(f"sweeper publish: {e}", file=sys.stderr)
         return 2

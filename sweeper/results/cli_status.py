@@ -1,26 +1,26 @@
 """``sweeper status SPEC``: the per-method ledger of a study (done, running, failed, left).
 
 Counts are per plan key (``sweeper.storage._ledger``): a key re-run after a crash is
-counted once, by its current trial. Reads only, on read-only connections
-(``sweeper.storage._open.open_study``); never creates the study or its file.
+counted once, by its current trial. Reads only, on read-only connections opened once
+(``sweeper.storage.open_for_reading``); never creates the study or its file.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
 from typing import TYPE_CHECKING, TextIO
 
 from agent.config import Outcome
 from sweeper.plan import build_plan, in_spec_order
 from sweeper.spec import plural
 from sweeper.storage import (
-    STORAGE_GRACE,
     NoStudy,
+    StudyStore,
+    check_plan,
     current_trials,
     ledger,
-    open_study,
+    open_for_reading,
     redact,
     stored_files,
 )
@@ -39,11 +39,8 @@ def run(spec: StudySpec, args: argparse.Namespace, stream: TextIO | None = None)
     was launched with another plan."""
     stream = sys.stdout if stream is None else stream
     try:
-        plan = build_plan(stored_files(spec))
-        grace = spec.execution.storage_grace
-        lines = status_lines(
-            spec.study, spec.storage_url, plan.keys(), plan.hash, grace, methods=list(spec.methods)
-        )
+        with open_for_reading(spec) as store:
+            lines = status_lines(spec, store)
     except ValueError as e:  # StorageError, a plan the spec cannot give
         print(f"sweeper status: {e}", file=sys.stderr)
         return 2
@@ -52,24 +49,19 @@ def run(spec: StudySpec, args: argparse.Namespace, stream: TextIO | None = None)
     return 0
 
 
-def status_lines(
-    study: str,
-    url: str,
-    keys: list[str],
-    plan_hash: str,
-    grace: float = STORAGE_GRACE,
-    methods: Sequence[str] = (),
-) -> list[str]:
-    """The ledger table and notes of ``study`` in ``url`` for the planned ``keys``, the
-    methods in the order of ``methods`` (the spec's)."""
-    keys = in_spec_order(keys, methods)
-    try:
-        with open_study(url, study, write=False, plan_hash=plan_hash, grace=grace) as store:
-            attrs = store.attrs
-            trials = store.trials()
-            alive = store.driver_alive()
-    except NoStudy as e:
-        return [*_table(ledger(keys, [], False)), f"not launched yet ({e.why})"]
+def status_lines(spec: StudySpec, store: StudyStore | NoStudy) -> list[str]:
+    """The ledger table and notes of the study of ``spec``, opened as ``store`` (or the
+    ``NoStudy`` saying why there is none), the methods in the spec's order. Raises
+    StorageError when the study was launched with another plan."""
+    plan = build_plan(stored_files(spec, store))
+    methods = list(spec.methods)
+    keys = in_spec_order(plan.keys(), methods)
+    if isinstance(store, NoStudy):
+        return [*_table(ledger(keys, [], False)), f"not launched yet ({store.why})"]
+    check_plan(spec.study, store.attrs, plan.hash)
+    attrs = store.attrs
+    trials = store.trials()
+    alive = store.driver_alive()
     lines = _table(ledger(keys, trials, alive))
     confirm = attrs.get("confirm")
     if confirm:  # the confirmation stage (sweeper confirm), counted apart

@@ -26,10 +26,12 @@ from typing import TYPE_CHECKING, Any
 from sweeper.plan import CONFIRM, PlanEntry, build_plan, confirm_plan
 from sweeper.spec import plural
 from sweeper.storage import (
+    NoStudy,
+    check_plan,
     current_trials,
     curve_of,
     describe_machine,
-    open_study,
+    open_for_reading,
     redact,
     stored_files,
     trial_attr,
@@ -152,10 +154,11 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
 def _recorded(spec: StudySpec, key: str) -> tuple[PlanEntry, Any]:
     """The plan entry of ``key`` (a search or confirmation key) and its current trial;
     ValueError when the study, the key or its trial does not exist."""
-    search = build_plan(stored_files(spec))
-    grace = spec.execution.storage_grace
-    with open_study(spec.storage_url, spec.study, write=False, plan_hash=search.hash,
-                    grace=grace) as store:  # fmt: skip
+    with open_for_reading(spec) as store:
+        if isinstance(store, NoStudy):
+            raise store
+        search = build_plan(stored_files(spec, store))
+        check_plan(spec.study, store.attrs, search.hash)
         plans = [search]
         confirm = store.attrs.get(CONFIRM)
         if confirm:

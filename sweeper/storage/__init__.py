@@ -66,7 +66,14 @@ from sweeper.storage._ledger import (
     tally,
 )
 from sweeper.storage._migrate import Upgrade
-from sweeper.storage._open import NoStudy, StudyRows, open_study, read_rows, stored_files
+from sweeper.storage._open import (
+    NoStudy,
+    StudyRows,
+    open_for_reading,
+    open_study,
+    read_rows,
+    stored_files,
+)
 from sweeper.storage._params import FIXED_PARAMS_ATTR, METHOD_PARAM, applies_to
 from sweeper.storage._provenance import (
     VERSIONED_PACKAGES,
@@ -154,6 +161,7 @@ __all__ = [
     "measured_seconds",
     "name_objective",
     "open_engine",
+    "open_for_reading",
     "open_storage",
     "open_study",
     "package_versions",

@@ -254,21 +254,35 @@ def _study_id(connection: Connection, url: str, name: str) -> int:
     return int(found)
 
 
-def stored_files(spec: StudySpec) -> StudySpec:
-    """For readers that check the plan (``status``, ``plan``): ``spec`` with the file
-    options it gives no value here (vgg's ``weights_path`` in a shell without
-    ``$GCRL_VGG16_WEIGHTS``) taken from the study's stored spec: the path is part of the
-    plan and its hash, so a reader takes a study launched where it was set. No study, or
-    none stored: ``spec`` as it is."""
+@contextlib.contextmanager
+def open_for_reading(spec: StudySpec) -> Iterator[StudyStore | NoStudy]:
+    """The one way a reading command opens its study: read-only, once, for the whole
+    command, with the spec's grace for outages. Yields the store, or the ``NoStudy`` that
+    says why there is none yet (not launched). Raises StorageError when the database
+    cannot be read. The plan's hash is the caller's to check (``check_plan``), once it has
+    built the plan (``stored_files``)."""
+    with contextlib.ExitStack() as stack:
+        try:
+            store: StudyStore | NoStudy = stack.enter_context(
+                open_study(
+                    spec.storage_url, spec.study, write=False, grace=spec.execution.storage_grace
+                )
+            )
+        except NoStudy as e:
+            store = e
+        yield store
+
+
+def stored_files(spec: StudySpec, store: StudyStore | NoStudy) -> StudySpec:
+    """For readers that check the plan (``status``, ``plan``, ``rerun``): ``spec`` with the
+    file options it gives no value here (vgg's ``weights_path`` in a shell without
+    ``$GCRL_VGG16_WEIGHTS``) taken from the spec stored in the open study: the path is part
+    of the plan and its hash, so a reader takes a study launched where it was set. No
+    study, or none stored: ``spec`` as it is."""
     unset = [item for item in spec.missing_files() if item.unset]
-    if not unset:
+    if not unset or isinstance(store, NoStudy):
         return spec
-    try:
-        grace = spec.execution.storage_grace
-        with open_study(spec.storage_url, spec.study, write=False, grace=grace) as store:
-            stored = (store.attrs.get("spec") or {}).get("methods") or {}
-    except StorageError:  # NoStudy included: then the plan's hash is not checked
-        return spec
+    stored = (store.attrs.get("spec") or {}).get("methods") or {}
     data = spec.model_dump(mode="json")
     for item in unset:
         _, method, name = item.at.split(".")
