@@ -51,7 +51,6 @@ from sweeper.storage import (
     ledger,
     open_study,
     redact,
-    resolve_url,
     sqlite_path,
     trial_artifacts,
 )
@@ -161,7 +160,7 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     missing video."""
     out = Path(args.out) if args.out else Path("docs") / "studies" / spec.study
     try:
-        source = sqlite_path(resolve_url(spec.storage_url))
+        source = sqlite_path(spec.storage_url)
         if source is None:
             raise StorageError(
                 f"{redact(spec.storage_url)} is not SQLite: copy the study into a SQLite "

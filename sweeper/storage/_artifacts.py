@@ -38,11 +38,11 @@ _ID_RE = re.compile(r"^[0-9a-fA-F-]+$")
 def artifact_location(spec: StudySpec) -> str:
     """Where the study's artifacts live: ``spec.artifacts``, else ``artifacts/`` beside
     the SQLite database file, else ``runs/<study>/artifacts``."""
-    from sweeper.storage._urls import resolve_url, sqlite_path
+    from sweeper.storage._urls import sqlite_path
 
     if spec.artifacts is not None:
         return spec.artifacts
-    database = sqlite_path(resolve_url(spec.storage_url))
+    database = sqlite_path(spec.storage_url)
     folder = database.parent if database is not None else spec.run_dir
     return str(folder / "artifacts")
 

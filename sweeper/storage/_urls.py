@@ -49,7 +49,7 @@ def resolve_url(url: str) -> str:
 
 
 def sqlite_path(url: str) -> Path | None:
-    """The file of a ``sqlite:///`` URL, None for other backends."""
+    """The file of a ``sqlite:///`` URL, None for other backends (any URL the spec takes)."""
     from sqlalchemy.engine import make_url
 
     parsed = make_url(url)
