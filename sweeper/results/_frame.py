@@ -56,6 +56,7 @@ class StudyInfo:
     attrs: dict[str, Any]  # the study user attrs (spec, plan, env, metric_names, ...)
     metrics: tuple[str, ...]  # metric columns, in the study's metric_names order
     searched: tuple[str, ...]  # params with more than one choice
+    videos: dict[int, dict[str, str]]  # trial number -> its videos (file name -> artifact id)
 
     def __deepcopy__(self, memo: dict) -> StudyInfo:
         # pandas deep-copies frame.attrs after every operation; this is read-only
@@ -182,7 +183,14 @@ def _build_frame(study_name: str, raw: StudyRows) -> pd.DataFrame:
         frame[column] = frame[column].astype("float64")
     current = set(current_numbers(zip(head["key"], head["trial"], strict=True)).values())
     frame["counted"] = frame["key"].notna() & frame["trial"].isin(current)
-    frame.attrs["study"] = StudyInfo(study_name, study, tuple(metrics), tuple(sorted(searched)))
+    videos = {
+        int(number): attrs_by_trial[trial_id]["videos"]
+        for trial_id, number, _ in trials.itertuples(index=False)
+        if (attrs_by_trial.get(trial_id) or {}).get("videos")
+    }
+    frame.attrs["study"] = StudyInfo(
+        study_name, study, tuple(metrics), tuple(sorted(searched)), videos
+    )
     return frame
 
 

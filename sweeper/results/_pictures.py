@@ -12,15 +12,12 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import pandas as pd
 
 from sweeper.results._frame import by_auc, methods_of, scored, study_info, trial_rows
 from sweeper.results._tiles import env_views, labelled, save_png, side_by_side, stacked
-
-if TYPE_CHECKING:
-    import optuna
 
 _VIDEO_RE = re.compile(r"^episode-step(\d+)\.(mp4|gif)$")
 
@@ -47,17 +44,14 @@ def best_and_median(scored_trials: pd.DataFrame) -> list[tuple[str, Any]]:
     return [("best", ordered.iloc[0]), ("median", ordered.iloc[len(ordered) // 2])]
 
 
-def final_frames(
-    frame: pd.DataFrame, storage: optuna.storages.BaseStorage, artifacts: str, out: Path
-) -> str:
+def final_frames(frame: pd.DataFrame, artifacts: str, out: Path) -> str:
     """Write ``final_frames.png`` into ``out``; return the report section (empty, and no
     file written, when no trial has a video, e.g. ``videos: none``)."""
     from agent.video import decode_video
-    from sweeper.storage import ArtifactStore, trial_attr
+    from sweeper.storage import ArtifactStore
 
     store = ArtifactStore(artifacts)
-    study_id = storage.get_study_id_from_name(study_info(frame).name)
-    by_number = {t.number: t for t in storage.get_all_trials(study_id, deepcopy=False)}
+    videos = study_info(frame).videos
     trials = trial_rows(scored(frame))
     rows, table = [], []
     for method in methods_of(frame):
@@ -66,7 +60,7 @@ def final_frames(
             continue
         tiles, cells = [], []
         for which, row in best_and_median(mine):
-            found = last_video(trial_attr(by_number[int(row["trial"])], "videos"))
+            found = last_video(videos.get(int(row["trial"])))
             if found is None:
                 continue
             artifact_id, fmt, step = found
@@ -103,14 +97,12 @@ def final_frames(
     ])  # fmt: skip
 
 
-def report_pictures(
-    frame: pd.DataFrame, storage: optuna.storages.BaseStorage, artifacts: str, out: Path
-) -> tuple[str, list[Path]]:
+def report_pictures(frame: pd.DataFrame, artifacts: str, out: Path) -> tuple[str, list[Path]]:
     """The report's picture sections (``sweeper aggregate``) and the files written: the
     final frames of each method's best and median trial, and the env's camera view and goal
     images (skipped with a line saying why when the env cannot be built here, e.g. no
     MuJoCo)."""
-    text = final_frames(frame, storage, artifacts, out)
+    text = final_frames(frame, artifacts, out)
     files = [out / "final_frames.png"] if text else []
     env = (study_info(frame).attrs.get("spec") or {}).get("env") or {}
     if not env.get("name"):

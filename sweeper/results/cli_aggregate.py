@@ -83,6 +83,7 @@ from sweeper.spec import plural
 from sweeper.storage import (
     StorageError,
     artifact_location,
+    driver_alive,
     is_database_error,
     open_study,
     reason_of,
@@ -257,8 +258,8 @@ def aggregate(
     """Read the study, compute curves and statistics, write CSV, PNG and the report to
     ``out``; with ``dashboard``, also save the comparison into the study; with the study's
     ``artifacts`` location, add pictures to the report (``sweeper.results._pictures``).
-    The study is read read-only; a study that cannot be written (read-only media) gets a
-    warning, not the comparison."""
+    The study is read once, read-only (``load_study_frame``); a study that cannot be written
+    (read-only media) gets a warning, not the comparison."""
     say = progress or (lambda message: print(message, file=sys.stderr, flush=True))
     start = time.perf_counter()
     frame = load_study_frame(storage_url, study_name)
@@ -268,28 +269,27 @@ def aggregate(
         f"in {time.perf_counter() - start:.1f} s"
     )
     search = stage_frame(frame, "search")  # the confirmation stage is reported apart
-    with open_study(storage_url, study_name, write=False) as store:
-        alive = store.driver_alive()
-        tables = study_tables(search, driver_alive=alive, seed=seed)
-        confirm = confirm_table(frame, driver_alive=alive, seed=seed)
-        say(f"computed the tables in {time.perf_counter() - start:.1f} s; writing to {out}")
-        files = write_tables(frame, tables, out)
-        figures = draw_figures(search, tables, out)
-        text = report_markdown(search, tables, alive)
-        halving = halving_table(search, seed=seed)
-        if halving is not None:  # successive halving: what each comparison covers
-            halving.to_csv(out / "halving.csv", index=False)
-            files.append(out / "halving.csv")
-            text += "\n" + halving_markdown(halving) + "\n"
-        if len(confirm):
-            confirm.to_csv(out / "confirm_table.csv", index=False)
-            files.append(out / "confirm_table.csv")
-            seeds = len(study_info(frame).attrs["confirm"]["seeds"])
-            text += "\n" + confirm_markdown(confirm, seeds)
-        if artifacts is not None:  # final frames per method, the env's view
-            pictures, written = report_pictures(search, store.storage, artifacts, out)
-            text += pictures
-            figures += written
+    alive = driver_alive(study_info(frame).attrs.get("driver"))
+    tables = study_tables(search, driver_alive=alive, seed=seed)
+    confirm = confirm_table(frame, driver_alive=alive, seed=seed)
+    say(f"computed the tables in {time.perf_counter() - start:.1f} s; writing to {out}")
+    files = write_tables(frame, tables, out)
+    figures = draw_figures(search, tables, out)
+    text = report_markdown(search, tables, alive)
+    halving = halving_table(search, seed=seed)
+    if halving is not None:  # successive halving: what each comparison covers
+        halving.to_csv(out / "halving.csv", index=False)
+        files.append(out / "halving.csv")
+        text += "\n" + halving_markdown(halving) + "\n"
+    if len(confirm):
+        confirm.to_csv(out / "confirm_table.csv", index=False)
+        files.append(out / "confirm_table.csv")
+        seeds = len(study_info(frame).attrs["confirm"]["seeds"])
+        text += "\n" + confirm_markdown(confirm, seeds)
+    if artifacts is not None:  # final frames per method, the env's view
+        pictures, written = report_pictures(search, artifacts, out)
+        text += pictures
+        figures += written
     report = out / "report.md"
     report.write_text(text, encoding="utf-8")
     if dashboard:
