@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 import encoders
+from agent import machine
 from agent.config import TRUE_REWARD_METHODS, TrialConfig
 from agent.envs import make_env
 from agent.envs.base import EPISODE_STEPS
@@ -161,7 +162,8 @@ class Calibration:
         if config.reward_scale == "auto":
             setup += SCALE_STEPS * (step + encode)
         sac = tuple(getattr(config.sac, f) for f in UPDATE_FIELDS)
-        act, update = self._part(("sac", *self._env_key(config), sac), lambda: self._sac(config))
+        key = ("sac", *self._env_key(config), sac, config.precision)
+        act, update = self._part(key, lambda: self._sac(config))
         return TrialCosts(
             setup=setup,
             seed_step=step + encode,
@@ -226,7 +228,8 @@ class Calibration:
         keys = ("state", "goal_state") if config.method == "state" else ("image", "goal_image")
         obs_space, goal_space = env.observation_space[keys[0]], env.observation_space[keys[1]]
         agent = SAC(obs_space.shape, goal_space.shape, env.action_space.shape[0], config.sac,
-                    device)  # fmt: skip
+                    device, precision=config.precision,
+                    channels_last=machine.conv_layout(device) == "channels_last")  # fmt: skip
         obs = env.reset()[0]
         act = self._time(lambda: agent.act(obs[keys[0]], obs[keys[1]], sample=True))
         replay = _random_replay(env, keys, config.sac.batch_size, self._rng)

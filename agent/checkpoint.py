@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from agent import storage_io
-from agent.config import RUNTIME_FIELDS, TrialConfig
+from agent.config import TrialConfig, curve_fields
 
 FILENAME = storage_io.CHECKPOINT_FILE
 FORMAT = 1
@@ -155,10 +155,7 @@ def _location(directory: str) -> str:
 
 def _config_key(config: TrialConfig) -> str:
     """The trial config without the fields that do not change the curve."""
-    fields = dataclasses.asdict(config)
-    for name in RUNTIME_FIELDS:
-        fields.pop(name)
-    return repr(fields)
+    return repr(curve_fields(config))
 
 
 def _write_error(directory: str, exc: BaseException) -> OSError | None:

@@ -7,6 +7,7 @@ A.1 search choices), from which the sweeper derives its search space.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
 from dataclasses import dataclass, field
@@ -51,6 +52,9 @@ class SACConfig(Hyperparameters):
     num_filters: int = hparam(32, ge=1)
     image_pad: int = hparam(4, ge=0)  # DrQ augmentation: replicate-pad then random crop back
 
+
+#: the precisions of acting and the update: fp32, or bf16 autocast (``agent.sac``)
+PRECISIONS = ("fp32", "bf16")
 
 #: env steps per episode, in every env (episodes truncate there and never terminate)
 EPISODE_STEPS = 50
@@ -98,6 +102,7 @@ class TrialConfig:
     # evaluation steps whose first episode is filmed and handed to ``train``'s ``record``
     video_steps: tuple[int, ...] = ()
     stop_at: int | None = None
+    precision: str = "fp32"  # one of PRECISIONS
 
     def __post_init__(self) -> None:
         _check(isinstance(self.sac, SACConfig), "sac", "a SACConfig", self.sac)
@@ -116,6 +121,7 @@ class TrialConfig:
             "'auto' or a positive number",
             scale,
         )
+        _check(self.precision in PRECISIONS, "precision", f"one of {PRECISIONS}", self.precision)
         for name in ("encoder_params", "env_kwargs"):
             v = getattr(self, name)
             _check(isinstance(v, dict), name, "a dict", v)
@@ -161,6 +167,18 @@ RUNTIME_FIELDS = (
     "video_steps",
     "stop_at",
 )
+
+
+def curve_fields(config: TrialConfig) -> dict[str, Any]:
+    """The fields of ``config`` that set its curve: all but ``RUNTIME_FIELDS``, and
+    ``precision`` only when not fp32 (so a trial from before that field keeps its identity:
+    its plan hash and its checkpoints)."""
+    fields = dataclasses.asdict(config)
+    for name in RUNTIME_FIELDS:
+        fields.pop(name)
+    if fields["precision"] == "fp32":
+        del fields["precision"]
+    return fields
 
 
 class Outcome(StrEnum):

@@ -20,6 +20,13 @@ import torch
 
 CPUINFO = Path("/proc/cpuinfo")
 
+#: the conv layout by CPU vendor, measured with benchmarks/bench_update_speed.py (both
+#: layouts, every row; docs/speed.md): channels-last (oneDNN's blocked convolutions) is
+#: 1.2-2x faster on an Intel Xeon with AMX; NCHW was faster on an AMD EPYC (Zen 4). Chosen
+#: by vendor, not by a start-up timing, so that a trial's numbers (the layout changes the
+#: order of floating-point sums) do not depend on a noisy measurement.
+CONV_LAYOUTS = {"GenuineIntel": "channels_last", "AuthenticAMD": "nchw"}
+
 
 def cpu_fields(cpuinfo: str) -> dict[str, str]:
     """The first processor's ``vendor_id``, ``cpu family``, ``model`` and ``model name``
@@ -31,20 +38,45 @@ def cpu_fields(cpuinfo: str) -> dict[str, str]:
     return {k: fields[k] for k in ("vendor_id", "cpu family", "model", "model name") if k in fields}
 
 
+def _cpu() -> dict[str, str]:
+    try:
+        return cpu_fields(CPUINFO.read_text())
+    except OSError:  # not Linux: what the platform module knows
+        return {}
+
+
+def native_bf16() -> list[str]:
+    """The CPU's native bf16 instructions among AMX-BF16 and AVX512-BF16 (the flags
+    ``/proc/cpuinfo`` lists; empty: bf16 is emulated, slower than fp32)."""
+    try:
+        text = CPUINFO.read_text()
+    except OSError:
+        return []
+    flags = next((line.split(":", 1)[1].split() for line in text.splitlines()
+                  if line.startswith("flags")), [])  # fmt: skip
+    return [flag for flag in ("amx_bf16", "avx512_bf16") if flag in flags]
+
+
+def conv_layout(device: torch.device) -> str:
+    """The layout the agent's convolutions run in here: ``channels_last`` on CUDA and where
+    ``CONV_LAYOUTS`` says so, else ``nchw`` (PyTorch's default)."""
+    if device.type == "cuda":
+        return "channels_last"
+    return CONV_LAYOUTS.get(_cpu().get("vendor_id", ""), "nchw")
+
+
 def describe(device: torch.device) -> dict[str, str]:
     """What a trial's numbers depend on beyond its code and config: the CPU (``cpu``:
     vendor, family and model number; ``cpu_name``), the instruction set of PyTorch's
-    kernels, PyTorch's version and, on CUDA, the GPU."""
-    try:
-        cpu = cpu_fields(CPUINFO.read_text())
-    except OSError:  # not Linux: what the platform module knows
-        cpu = {}
+    kernels, PyTorch's version, the conv layout (``conv_layout``) and, on CUDA, the GPU."""
+    cpu = _cpu()
     ids = [cpu.get("vendor_id", platform.machine()), cpu.get("cpu family"), cpu.get("model")]
     described = {
         "cpu": " ".join(i for i in ids if i),
         "cpu_name": cpu.get("model name", platform.processor()),
         "kernels": torch.backends.cpu.get_cpu_capability(),
         "torch": str(torch.__version__),  # a str subclass that torch.load refuses
+        "conv_layout": conv_layout(device),
     }
     if device.type == "cuda":
         described["gpu"] = torch.cuda.get_device_name(device)

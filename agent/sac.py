@@ -13,6 +13,10 @@
 - Augmentation: replicate-pad by ``image_pad`` and random-crop back (DrQ), done by
   one gather on the uint8 images, independently for each image.
 - State-oracle mode (``pixels=False``): the same SAC on state and goal vectors, no convs.
+- Precision ``bf16``: the forward passes of acting and of the update run under bf16
+  autocast (convolutions and matrix products in bf16); each network's output is cast
+  back to fp32, so log-probabilities, targets, losses, the reward, weights and optimiser
+  state stay fp32. ``fp32`` is the same code with autocast off.
 
 Speed: images stay uint8 NHWC until the conv, whose float input is a channels-last view
 (no copy); one conv pass with gradient over (obs, goal) and one without over next_obs.
@@ -28,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from agent.config import SACConfig
+from agent.config import PRECISIONS, SACConfig
 from encoders.conv import conv_output_size, drq_conv_stack, drq_weight_init
 
 LOG_STD_MIN, LOG_STD_MAX = -10.0, 2.0
@@ -79,7 +83,7 @@ class ConvEncoder(nn.Module):
         return self.convs[0].weight.is_contiguous(memory_format=torch.channels_last)
 
     def use_layout(self, channels_last: bool) -> None:
-        """Run the convolutions channels-last (oneDNN's fast layout on x86 CPUs; the
+        """Run the convolutions channels-last (oneDNN's fast layout on Intel CPUs; the
         default) or NCHW; the same numbers up to floating-point order."""
         self.to(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
 
@@ -100,7 +104,7 @@ class Actor(nn.Module):
 
     def forward(self, obs: Tensor, goal: Tensor) -> tuple[Tensor, Tensor]:
         h = torch.cat([self.head(obs), self.head(goal)], dim=-1)
-        mu, log_std = self.policy(h).chunk(2, dim=-1)
+        mu, log_std = self.policy(h).float().chunk(2, dim=-1)  # fp32 under bf16 autocast
         log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
         return mu, log_std
 
@@ -125,7 +129,7 @@ class Critic(nn.Module):
 
     def forward(self, obs: Tensor, goal: Tensor, action: Tensor) -> tuple[Tensor, Tensor]:
         h = torch.cat([self.head(obs), self.head(goal), action], dim=-1)
-        return self.q1(h), self.q2(h)
+        return self.q1(h).float(), self.q2(h).float()
 
 
 class SAC:
@@ -138,14 +142,20 @@ class SAC:
         action_dim: int,
         cfg: SACConfig,
         device: torch.device,
+        precision: str = "fp32",
+        channels_last: bool = True,
     ) -> None:
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
         self.cfg = cfg
         self.device = device
+        self.precision = precision
         self.pixels = len(obs_shape) == 3
         if self.pixels:
             self.encoder: ConvEncoder | None = ConvEncoder(obs_shape[0], cfg.num_filters)
             self.encoder.apply(drq_weight_init)
-            self.encoder.to(device, memory_format=torch.channels_last)
+            self.encoder.to(device)
+            self.encoder.use_layout(channels_last)
             dims = (self.encoder.repr_dim, self.encoder.repr_dim)
         else:
             self.encoder = None
@@ -172,6 +182,11 @@ class SAC:
     def alpha(self) -> Tensor:
         return self.log_alpha.exp()
 
+    def autocast(self) -> torch.autocast:
+        """The forward passes' precision: bf16 autocast, or off (fp32)."""
+        bf16 = self.precision == "bf16"
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16)
+
     def to_tensor(self, x: np.ndarray) -> Tensor:
         return torch.as_tensor(x, device=self.device)
 
@@ -179,12 +194,13 @@ class SAC:
     def act(self, obs: np.ndarray, goal: np.ndarray, sample: bool) -> np.ndarray:
         """One action in [-1, 1]: sampled (training) or the mean (evaluation)."""
         o, g = self.to_tensor(obs)[None], self.to_tensor(goal)[None]
-        if self.encoder is not None:
-            o, g = self.encoder(torch.cat([o, g])).chunk(2)
-        if sample:
-            action, _ = self.actor.sample(o, g)
-        else:
-            action = torch.tanh(self.actor(o, g)[0])
+        with self.autocast():
+            if self.encoder is not None:
+                o, g = self.encoder(torch.cat([o, g])).chunk(2)
+            if sample:
+                action, _ = self.actor.sample(o, g)
+            else:
+                action = torch.tanh(self.actor(o, g)[0])
         return action[0].cpu().numpy()
 
     def update(self, batch: dict[str, np.ndarray]) -> dict[str, Tensor]:
@@ -196,22 +212,23 @@ class SAC:
         n = len(obs)
 
         # 1. augment and encode: with gradient for (obs, goal), without for next_obs
-        if self.encoder is not None:
-            images = torch.cat([obs, goal, next_obs])
-            if cfg.image_pad > 0:
-                images = random_shift(images, cfg.image_pad)
-            with torch.no_grad():
-                next_obs = self.encoder(images[2 * n :])
-            obs, goal = self.encoder(images[: 2 * n]).split(n)
+        with self.autocast():
+            if self.encoder is not None:
+                images = torch.cat([obs, goal, next_obs])
+                if cfg.image_pad > 0:
+                    images = random_shift(images, cfg.image_pad)
+                with torch.no_grad():
+                    next_obs = self.encoder(images[2 * n :])
+                obs, goal = self.encoder(images[: 2 * n]).split(n)
 
-        # 2. critic: TD target from the target critic at the next observation
-        with torch.no_grad():
-            goal_d = goal.detach()
-            next_action, next_log_prob = self.actor.sample(next_obs, goal_d)
-            target_q1, target_q2 = self.critic_target(next_obs, goal_d, next_action)
-            target_v = torch.min(target_q1, target_q2) - self.alpha * next_log_prob
-            target_q = reward + cfg.discount * target_v
-        q1, q2 = self.critic(obs, goal, action)
+            # 2. critic: TD target from the target critic at the next observation
+            with torch.no_grad():
+                goal_d = goal.detach()
+                next_action, next_log_prob = self.actor.sample(next_obs, goal_d)
+                target_q1, target_q2 = self.critic_target(next_obs, goal_d, next_action)
+                target_v = torch.min(target_q1, target_q2) - self.alpha * next_log_prob
+                target_q = reward + cfg.discount * target_v
+            q1, q2 = self.critic(obs, goal, action)
         critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
         self.critic_opt.zero_grad(set_to_none=True)
         critic_loss.backward()
@@ -221,10 +238,11 @@ class SAC:
         # 3. actor and temperature, on detached conv features (the actor never trains convs)
         if self.num_updates % cfg.actor_update_every == 0:
             obs, goal = obs.detach(), goal.detach()
-            pi_action, log_prob = self.actor.sample(obs, goal)
-            self.critic.requires_grad_(False)  # gradients to the action only
-            pi_q1, pi_q2 = self.critic(obs, goal, pi_action)
-            self.critic.requires_grad_(True)
+            with self.autocast():
+                pi_action, log_prob = self.actor.sample(obs, goal)
+                self.critic.requires_grad_(False)  # gradients to the action only
+                pi_q1, pi_q2 = self.critic(obs, goal, pi_action)
+                self.critic.requires_grad_(True)
             actor_loss = (self.alpha.detach() * log_prob - torch.min(pi_q1, pi_q2)).mean()
             self.actor_opt.zero_grad(set_to_none=True)
             actor_loss.backward()

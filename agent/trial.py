@@ -266,7 +266,12 @@ class _Trial:
         self.eval_seeds = [_seed(config.seed, 100 + i) for i in range(config.eval_episodes)]
         obs_space, goal_space = env.observation_space[keys[0]], env.observation_space[keys[1]]
         action_dim = env.action_space.shape[0]
-        self.agent = SAC(obs_space.shape, goal_space.shape, action_dim, config.sac, device)
+        self.machine = machine.describe(device)
+        self.agent = SAC(
+            obs_space.shape, goal_space.shape, action_dim, config.sac, device,
+            precision=config.precision,
+            channels_last=self.machine["conv_layout"] == "channels_last",
+        )  # fmt: skip
         self.replay = ReplayBuffer(
             capacity=min(config.sac.buffer_capacity, config.total_steps),
             obs_shape=obs_space.shape,
@@ -285,7 +290,6 @@ class _Trial:
         self.seconds_before = 0.0  # wall time of the runs before the resumed checkpoint
         self.video_seconds = 0.0
         self.machines_before: list[dict[str, Any]] = []  # the runs before the checkpoint
-        self.machine = machine.describe(device)
 
     def run(self) -> TrialResult:
         """Resume or evaluate the untrained agent, then train to ``total_steps``, evaluating

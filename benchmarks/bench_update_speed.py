@@ -4,8 +4,8 @@ Prints the CPU (model, and whether it has native bf16: AMX or AVX512-BF16), a de
 2048^3 matmul's GFLOP/s in fp32 and in bf16 measured in the same run with the same
 threads (the peaks), then one full SAC-DrQ update (augmentation, critic, actor,
 temperature, target; ``actor_update_every=1``) per row: 84x84 and 48x48, batch 32, 128
-and 256, 32 filters, fp32 and under bf16 autocast, the convolutions channels-last (the
-agent's default) and NCHW. Each row: ms per update (median), the convolution and matmul
+and 256, 32 filters, the agent's precisions (fp32, bf16 autocast), the convolutions
+channels-last and NCHW. Each row: ms per update (median), the convolution and matmul
 GFLOP it does (``torch.utils.flop_counter``), GFLOP/s, and that as a % of the matching
 peak. Targets (issue 34): fp32 at batch 256 >= 80% of the fp32 peak, bf16 >= 35% of the
 bf16 peak. Last, with ``--trial-steps N``, a real trial at ``bench_learning.FETCH_CPU``
@@ -19,7 +19,6 @@ Run: ``./run python benchmarks/bench_update_speed.py [--threads 1] [--repeats 5]
 from __future__ import annotations
 
 import argparse
-import contextlib
 import sys
 import time
 from collections.abc import Callable
@@ -33,10 +32,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from agent.config import SACConfig
-from agent.machine import CPUINFO, cpu_fields
-from agent.sac import SAC
+from agent.machine import CPUINFO, cpu_fields, native_bf16
+from agent.sac import PRECISIONS, SAC
 
-PRECISIONS = ("fp32", "bf16")
 #: the targets of issue 34, as a fraction of the matching matmul peak
 TARGETS = {"fp32": 0.80, "bf16": 0.35}
 
@@ -44,13 +42,10 @@ TARGETS = {"fp32": 0.80, "bf16": 0.35}
 def cpu_line() -> str:
     """The CPU model and its native bf16 instructions (the flags /proc/cpuinfo lists)."""
     try:
-        text = CPUINFO.read_text()
+        fields = cpu_fields(CPUINFO.read_text())
     except OSError:
         return "CPU: unknown (no /proc/cpuinfo)"
-    fields = cpu_fields(text)
-    flags = next((line.split(":", 1)[1].split() for line in text.splitlines()
-                  if line.startswith("flags")), [])  # fmt: skip
-    native = [f for f in ("amx_bf16", "avx512_bf16") if f in flags]
+    native = native_bf16()
     bf16 = (
         f"native bf16: {', '.join(native)}" if native else "no native bf16 (no AMX, no AVX512-BF16)"
     )
@@ -96,14 +91,12 @@ def time_update(
 ) -> tuple[float, float]:
     """(seconds per update, counted GFLOP per update) of one full update."""
     cfg = SACConfig(batch_size=batch_size, num_filters=32, actor_update_every=1)
-    agent = SAC((size, size, 3), (size, size, 3), 4, cfg, torch.device("cpu"))
-    agent.encoder.use_layout(channels_last)
+    agent = SAC((size, size, 3), (size, size, 3), 4, cfg, torch.device("cpu"), precision,
+                channels_last)  # fmt: skip
     batch = random_batch(size, batch_size, np.random.default_rng(0))
 
     def update() -> None:
-        autocast = torch.autocast("cpu", dtype=torch.bfloat16)
-        with autocast if precision == "bf16" else contextlib.nullcontext():
-            agent.update(batch)
+        agent.update(batch)
 
     with FlopCounterMode(display=False) as counter:
         update()  # also the warm-up

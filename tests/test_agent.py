@@ -33,9 +33,9 @@ def batch(size: int, n: int = 8, seed: int = 0) -> dict[str, np.ndarray]:
     }
 
 
-def pixel_agent(size: int = 32) -> SAC:
+def pixel_agent(size: int = 32, precision: str = "fp32") -> SAC:
     cfg = SACConfig(hidden_sizes=(16, 16), batch_size=8)
-    return SAC((size, size, 3), (size, size, 3), 2, cfg, torch.device("cpu"))
+    return SAC((size, size, 3), (size, size, 3), 2, cfg, torch.device("cpu"), precision)
 
 
 def snapshot(module: torch.nn.Module) -> list[torch.Tensor]:
@@ -200,3 +200,42 @@ def test_an_update_in_either_conv_layout_gives_the_same_losses() -> None:
     for fast, plain in zip(losses[True], losses[False], strict=True):
         for name in fast:
             assert fast[name] == pytest.approx(plain[name], rel=1e-5, abs=1e-7), name
+
+
+def test_bf16_runs_the_forward_passes_in_bf16_and_keeps_the_rest_fp32() -> None:
+    """Under precision bf16 the convolutions and the Q networks compute in bf16, while
+    weights, gradients, optimiser state, losses and actions stay fp32; from the same
+    weights and batches the losses are fp32's within bf16's resolution, and fp32 is the
+    same code with autocast off. Compared at the first update, from the same weights (Adam
+    turns the small differences of the gradients into steps of the learning rate's size,
+    so later updates start from different weights)."""
+    losses, conv_dtypes = {}, {}
+    for precision in ("fp32", "bf16"):
+        torch.manual_seed(0)
+        agent = pixel_agent(precision=precision)
+        seen: list[torch.dtype] = []
+        agent.encoder.convs[0].register_forward_hook(
+            lambda m, i, out, seen=seen: seen.append(out.dtype)
+        )
+        torch.manual_seed(1)
+        losses[precision] = [
+            {k: float(v) for k, v in agent.update(batch(32, seed=i)).items()} for i in range(3)
+        ]
+        conv_dtypes[precision] = set(seen)
+        action = agent.act(batch(32)["obs"][0], batch(32)["goal"][0], sample=True)
+        assert action.dtype == np.float32
+        for net in (agent.encoder, agent.actor, agent.critic, agent.critic_target):
+            assert {p.dtype for p in net.parameters()} == {torch.float32}
+            assert {p.grad.dtype for p in net.parameters() if p.grad is not None} <= {torch.float32}
+        state = agent.critic_opt.state_dict()["state"]
+        assert {t.dtype for s in state.values() for t in s.values() if t.dim()} == {torch.float32}
+    assert conv_dtypes == {"fp32": {torch.float32}, "bf16": {torch.bfloat16}}
+    full, half = losses["fp32"][0], losses["bf16"][0]
+    assert full.keys() == half.keys() == {"critic_loss", "actor_loss", "alpha_loss"}
+    for name in full:
+        assert half[name] != full[name] and half[name] == pytest.approx(full[name], rel=0.02)
+    assert all(math.isfinite(v) for update in losses["bf16"] for v in update.values())
+    with pytest.raises(ValueError, match="precision"):
+        pixel_agent(precision="fp16")
+    with pytest.raises(ValueError, match="precision"):
+        TrialConfig(precision="fp16")

@@ -171,9 +171,26 @@ def test_the_machine_is_described_by_what_its_kernels_depend_on() -> None:
     }
     assert machine.cpu_fields("") == {}
     here = machine.describe(torch.device("cpu"))
-    assert set(here) == {"cpu", "cpu_name", "kernels", "torch"}
+    assert set(here) == {"cpu", "cpu_name", "kernels", "torch", "conv_layout"}
     assert here["kernels"] == torch.backends.cpu.get_cpu_capability()
     assert here["torch"] == torch.__version__
+    assert here["conv_layout"] == machine.conv_layout(torch.device("cpu"))
+
+
+@pytest.mark.parametrize(
+    ("vendor", "layout"),
+    [("GenuineIntel", "channels_last"), ("AuthenticAMD", "nchw"), ("ARM", "nchw"), ("", "nchw")],
+)
+def test_the_conv_layout_follows_the_cpu_vendor(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, vendor: str, layout: str
+) -> None:
+    """Decided by the CPU's vendor (not timed), recorded with the machine; CUDA: channels-last."""
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text(CPUINFO.replace("GenuineIntel", vendor))
+    monkeypatch.setattr(machine, "CPUINFO", cpuinfo)
+    assert machine.conv_layout(torch.device("cpu")) == layout
+    assert machine.describe(torch.device("cpu"))["conv_layout"] == layout
+    assert machine.conv_layout(torch.device("cuda")) == "channels_last"
 
 
 def test_a_trial_paused_at_a_rung_goes_on_to_the_uninterrupted_curve(tmp_path: Path) -> None:

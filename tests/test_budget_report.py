@@ -22,6 +22,8 @@ from sweeper.results._budget import (
     budget_table,
     controls_table,
     join_studies,
+    precision_markdown,
+    precision_table,
     setting_label,
     study_trials,
 )
@@ -79,13 +81,23 @@ def frames(tmp_path_factory):
         | {"execution": budget.execution.model_dump(mode="json") | {"cpus_per_trial": 2}}
     )
     shifted = parse_spec(budget.model_dump(mode="json") | {"study": "shifted", "seed": 1})
+    bf16 = spec_like(
+        "studies/fetch_reach_cpu.yaml",
+        study="bf16",
+        methods={"pixel": {}, "state": {}},
+        trials_per_method=2,
+        precision="bf16",
+    )
     write_planned_study(url, cpu, final_success=final_success, seconds=1800.0)
+    write_planned_study(
+        url, bf16, final_success=lambda key: final_success(key) - 0.1, seconds=900.0
+    )
     skip = frozenset({"pixel_b128/1/1"})  # not done yet: n counts done trials
     write_planned_study(url, budget, final_success=final_success, seconds=3600.0, skip=skip)
     write_planned_study(url, shifted, final_success=final_success)
     return {
         name: stage_frame(load_study_frame(url, name), "search")
-        for name in ("cpu", "budget", "shifted")
+        for name in ("cpu", "budget", "shifted", "bf16")
     }
 
 
@@ -187,6 +199,33 @@ def test_n_and_cpu_hours(joined):
     row = table.loc[("pixel", "1/2")]
     assert row["final_success_iqm"] == pytest.approx(expected)
     assert row["final_success_iqm_low"] <= row["final_success_iqm"] <= row["final_success_iqm_high"]
+
+
+def test_a_study_in_bf16_is_paired_with_the_same_trials_in_fp32(frames):
+    """bf16 is a departure of its study's settings, and precision_table gives the paired
+    differences bf16 minus fp32 per line, the controls too: here 0.1 lower on every pair
+    in half the time."""
+    join = join_studies([study_trials(n, frames[n]) for n in ("cpu", "bf16")])
+    assert not join.left_out  # the same configurations in another precision
+    table = budget_table(join).set_index(["encoder", "setting"])
+    assert table.loc[("pixel", "1/16, precision bf16"), "versus"] == "1/16"
+    assert table.loc[("pixel", "1/16, precision bf16"), "n"] == 4
+    assert "1/16, precision bf16" not in set(table.loc["linear"].index)
+    assert set(controls_table(join)["setting"]) == {"1/16", "1/16, precision bf16"}
+    precision = precision_table(join).set_index("line")
+    assert list(precision.index) == ["pixel", "state"]
+    for line in ("pixel", "state"):
+        row = precision.loc[line]
+        assert (row["setting"], row["versus"], row["pairs"]) == ("1/16, precision bf16", "1/16", 4)
+        for column in ("", "_low", "_high"):
+            assert row[f"final_success_difference{column}"] == pytest.approx(-0.1)
+            assert row[f"auc_difference{column}"] < 0
+        assert row["seconds_ratio"] == pytest.approx(0.5)
+    text = precision_markdown(precision_table(join))
+    assert "## Precision: the same trials in bf16 and in fp32" in text
+    assert "| pixel | 1/16, precision bf16 | 1/16 | 4* | -0.10 [-0.10, -0.10] |" in text
+    fp32_only = join_studies([study_trials(n, frames[n]) for n in ("cpu", "budget")])
+    assert precision_table(fp32_only).empty
 
 
 def test_the_command_joins_the_published_study_with_a_budget_study(tmp_path, capsys):

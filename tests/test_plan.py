@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
+import re
 from collections import Counter
 
 import numpy as np
+import pytest
 
 from agent.config import SACConfig, TrialConfig
 from encoders.options import default_space
@@ -207,6 +210,22 @@ def test_pinned_hashes_of_the_shipped_specs():
     assert budget.hash == "6473b5dd99e4566b1d71fd9022a60ec029626e4f74983baf5b20156931aba9a1"
 
 
+def test_precision_bf16_is_part_of_the_plan_and_fp32_keeps_the_hash_of_before():
+    """``precision: bf16`` reaches every trial and changes the plan hash; writing the
+    default ``fp32`` gives the hash the spec had before the setting existed."""
+    from conftest import ROOT
+
+    from sweeper.spec._models import load_yaml
+
+    text = load_yaml((ROOT / "studies" / "ci.yaml").read_text())
+    before = "830e846cffc46202330169036592bb8d8f81b561df2e82df24eb736a5b768cd5"
+    assert build_plan(parse_spec(text | {"precision": "fp32"})).hash == before
+    bf16 = build_plan(parse_spec(text | {"precision": "bf16"}))
+    assert bf16.hash != before
+    assert {e.trial_config.precision for e in bf16.entries} == {"bf16"}
+    assert {e.trial_config.precision for e in build_plan(parse_spec(text)).entries} == {"fp32"}
+
+
 def test_a_method_fixes_sac_fields_and_stays_paired_with_every_study_of_its_space():
     """``methods.<name>.sac`` replaces those fields for that method only; every other
     sampled value of configuration i is configuration i's of a study without the method
@@ -273,3 +292,62 @@ def test_sweeper_plan_says_each_method_s_gradient_samples_and_what_is_outside_a1
     )
     cpu = load_spec(ROOT / "studies" / "fetch_reach_cpu.yaml")
     assert all("(1/16 of A.1)" in line for line in budget_lines(cpu, build_plan(cpu))[1:-1])
+
+
+@pytest.mark.parametrize("native", [[], ["avx512_bf16"]])
+def test_sweeper_plan_shows_the_precision_and_warns_where_bf16_is_not_native(
+    monkeypatch: pytest.MonkeyPatch, native: list[str]
+) -> None:
+    """fp32: one line. bf16 on a CPU without native bf16: a warning with the ratio of one
+    trial's calibrated time in bf16 to its time in fp32, both calibrated here."""
+    from conftest import ROOT
+
+    from agent import machine
+    from sweeper.plan._estimate import estimate_trials
+    from sweeper.plan.cli_plan import precision_lines
+    from sweeper.spec._models import load_yaml
+
+    text = load_yaml((ROOT / "studies" / "ci.yaml").read_text())
+    fp32 = parse_spec(text)
+    assert precision_lines(fp32, [], {}) == ["precision: fp32"]
+    monkeypatch.setattr(machine, "native_bf16", lambda: native)
+    spec = parse_spec(text | {"precision": "bf16"})
+    entries = list(build_plan(spec).entries)
+    lines = precision_lines(spec, entries, estimate_trials(entries, {}, seconds_per_part=0.05))
+    assert lines[0].startswith("precision: bf16 autocast")
+    if native:
+        assert len(lines) == 1
+    else:
+        (warning,) = lines[1:]
+        assert re.fullmatch(
+            r"warning: this CPU has no native bf16 \(no AMX, no AVX512-BF16\): a linear trial "
+            r"in bf16 takes \d+\.\dx its time in fp32 here; set precision: fp32",
+            warning,
+        ), warning
+
+
+@pytest.mark.parametrize(
+    ("fp32", "bf16"),
+    [
+        ("fetch_reach_cpu", "fetch_reach_bf16"),
+        ("point_reach_precision", "point_reach_precision_bf16"),
+    ],
+)
+def test_each_bf16_study_is_its_fp32_study_s_trials_in_bf16(fp32: str, bf16: str) -> None:
+    """Every trial of the bf16 study is the trial of the same key in its fp32 twin, in
+    every value but the precision, so the report pairs them."""
+    from conftest import ROOT
+
+    from sweeper.spec._models import load_spec
+
+    def trials(name: str) -> dict[str, TrialConfig]:
+        plan = build_plan(load_spec(ROOT / "studies" / f"{name}.yaml"))
+        return {
+            e.key: dataclasses.replace(e.trial_config, checkpoint_dir=None) for e in plan.entries
+        }
+
+    half, full = trials(bf16), trials(fp32)
+    assert half and set(half) <= set(full)
+    for key, config in half.items():
+        assert config.precision == "bf16" and full[key].precision == "fp32"
+        assert dataclasses.replace(config, precision="fp32") == full[key], key

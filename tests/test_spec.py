@@ -534,6 +534,7 @@ BAD_SPECS = [
         "greater than or equal to 0",
     ),
     ("bad study name", spec_text(_set("study", "../escape")), "study", "letters, digits"),
+    ("fp16 precision", spec_text(_set("precision", "fp16")), "precision", "'fp32' or 'bf16'"),
     (
         "state has no options",
         spec_text(_set("methods", {"state": {"latent_dim": 4}})),

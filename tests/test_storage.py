@@ -16,6 +16,7 @@ import pytest
 from conftest import wait_until
 from optuna.trial import TrialState
 
+from agent.config import TrialConfig
 from sweeper.storage import (
     DRIVER_STALE_SECONDS,
     Counts,
@@ -47,6 +48,7 @@ class Entry:
     seed: int
     params: dict = field(default_factory=lambda: {"lr": 1e-3})
     choices: dict = field(default_factory=lambda: {"lr": (1e-3, 1e-4)})
+    trial_config: TrialConfig = field(default_factory=TrialConfig)
 
     @property
     def key(self) -> str:
@@ -538,6 +540,7 @@ def test_sync_creates_5000_trials_in_bulk_on_postgresql(pg_url):
         "seed": 9,
         "key": "vae/249/9",
         "plan_hash": "h",
+        "precision": "fp32",
         "attempts": 0,
         "stage": "search",
     }

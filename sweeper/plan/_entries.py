@@ -21,7 +21,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from agent.config import RUNTIME_FIELDS, SACConfig, TrialConfig
+from agent.config import SACConfig, TrialConfig, curve_fields
 from encoders.options import default_space
 from sweeper.plan._halving import Schedule, rung_sizes
 from sweeper.spec import StudySpec, derive_rng, param_value, sample_configs
@@ -164,6 +164,7 @@ def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
                     checkpoint_every=spec.execution.checkpoint_every,
                     env_kwargs=dict(spec.env.options),
                     video_steps=spec.video_steps,
+                    precision=spec.precision,
                 )
                 drafts.append((method, config_id, seed, params, choices, config))
 
@@ -171,9 +172,7 @@ def build_plan(spec: StudySpec, study_uid: str | None = None) -> Plan:
         {
             "key": trial_key(method, config_id, seed),
             "params": params,
-            "trial": {
-                k: v for k, v in dataclasses.asdict(config).items() if k not in RUNTIME_FIELDS
-            },
+            "trial": curve_fields(config),
         }
         for method, config_id, seed, params, _, config in drafts
     ]

@@ -17,7 +17,8 @@ from dataclasses import replace
 from fractions import Fraction
 from typing import TYPE_CHECKING, TextIO
 
-from sweeper.plan._entries import A1, A1_SAMPLES, Plan, build_plan, outside_a1
+from agent import machine
+from sweeper.plan._entries import A1, A1_SAMPLES, Plan, PlanEntry, build_plan, outside_a1
 from sweeper.plan._estimate import (
     TrialEstimate,
     estimate_trials,
@@ -83,6 +84,7 @@ def plan_lines(
             f"{finished:>4}  {cost:>13}  {source}"
         )
     lines += budget_lines(spec, plan)
+    lines += precision_lines(spec, [e for e in known if e.key in estimates], estimates)
     if plan.schedule is not None:
         lines += halving_lines(replace(plan, entries=tuple(known)), estimates, len(spec.seeds))
     lines += summary_lines(known, done, estimates, spec.execution, calibration_seconds)
@@ -127,6 +129,28 @@ def budget_lines(spec: StudySpec, plan: Plan) -> list[str]:
         lines.append(f"  {method:<{width}}  {shown}  ({fraction} of A.1){mark}")
     if shared:
         lines.append(f"  every method, outside A.1: {', '.join(shared)}")
+    return lines
+
+
+def precision_lines(
+    spec: StudySpec, entries: list[PlanEntry], estimates: dict[str, TrialEstimate]
+) -> list[str]:
+    """The update's precision; for bf16 on CPU trials on a CPU without native bf16 (no AMX,
+    no AVX512-BF16), a warning with how much slower one trial is than in fp32 here (its
+    first calibrated entry calibrated again in fp32)."""
+    if spec.precision == "fp32":
+        return ["precision: fp32"]
+    lines = ["precision: bf16 autocast (weights, optimiser state, targets and rewards fp32)"]
+    calibrated = [e for e in entries if estimates[e.key].source == "calibrated"]
+    if spec.execution.gpus_per_trial or machine.native_bf16() or not calibrated:
+        return lines
+    entry = calibrated[0]
+    fp32 = replace(entry, trial_config=replace(entry.trial_config, precision="fp32"))
+    ratio = estimates[entry.key].seconds / estimate_trials([fp32], {})[entry.key].seconds
+    lines.append(
+        f"warning: this CPU has no native bf16 (no AMX, no AVX512-BF16): a {entry.method} "
+        f"trial in bf16 takes {ratio:.1f}x its time in fp32 here; set precision: fp32"
+    )
     return lines
 
 

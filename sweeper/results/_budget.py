@@ -43,7 +43,7 @@ from sweeper.results._frame import (
     trial_rows,
 )
 from sweeper.results._normalize import trial_scores
-from sweeper.results._stats import Group, Interval, iqm, stratified_bootstrap
+from sweeper.results._stats import Group, Interval, iqm, mean, stratified_bootstrap
 from sweeper.results._tables import (
     CONFIDENCE,
     RESAMPLES,
@@ -198,6 +198,9 @@ def study_trials(name: str, frame: pd.DataFrame) -> StudyTrials:
     trials = trial_rows(frame)
     trials = trials[trials["counted"]].set_index("trial")
     lines = method_lines(frame)
+    spec = info.attrs.get("spec") or {}
+    precision = spec.get("precision", "fp32")  # studies from before the setting: fp32
+    other_precision = {} if precision == "fp32" else {"precision": precision}
     rows = []
     for number, trial in trials.iterrows():
         method = trial["method"]
@@ -217,14 +220,14 @@ def study_trials(name: str, frame: pd.DataFrame) -> StudyTrials:
                 "sac": sac,
                 "options": options,
                 "samples": samples_per_step(sac),
-                "departures": a1_departures(sac),
+                "departures": a1_departures(sac) | other_precision,
+                "precision": precision,
             }
         )
     columns = ["trial", "study", "method", "line", "control", "config_id", "seed", "sac"]
-    columns += ["options", "samples", "departures"]
+    columns += ["options", "samples", "departures", "precision"]
     table = pd.DataFrame(rows, columns=columns).set_index("trial")
     table = table.join(trial_outcomes(frame)).reset_index()
-    spec = info.attrs.get("spec") or {}
     steps = (spec.get("budget") or {}).get("env_steps")
     if steps is None and frame["step"].notna().any():
         steps = int(frame["step"].max())
@@ -313,9 +316,11 @@ class BudgetJoin:
 
 
 def in_a1_order(values: Mapping[str, Any]) -> dict[str, Any]:
-    """``values`` ordered as A.1's SAC fields, so a label reads the same in every study."""
+    """``values`` ordered as A.1's SAC fields (the precision after them), so a label reads
+    the same in every study."""
     order = list(A1_CHOICES)
-    return dict(sorted(values.items(), key=lambda item: order.index(item[0])))
+    rank = {name: i for i, name in enumerate(order)}
+    return dict(sorted(values.items(), key=lambda item: rank.get(item[0], len(order))))
 
 
 def join_studies(studies: Sequence[StudyTrials]) -> BudgetJoin:
@@ -346,9 +351,11 @@ def join_studies(studies: Sequence[StudyTrials]) -> BudgetJoin:
     items = [set(d.items()) for d in trials["departures"]]
     shared = set.intersection(*items) if items else set()
     own = [in_a1_order(dict(d.items() - shared)) for d in trials["departures"]]
+    fp32 = [{k: v for k, v in d.items() if k != "precision"} for d in own]
     trials = trials.assign(
         setting=[setting_label(n, d) for n, d in zip(trials["samples"], own, strict=True)],
         on_line=[not d for d in own],
+        fp32_setting=[setting_label(n, d) for n, d in zip(trials["samples"], fp32, strict=True)],
     )
     return BudgetJoin(
         trials=trials,
@@ -488,6 +495,65 @@ def controls_table(join: BudgetJoin, *, seed: int = 0) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=CONTROL_COLUMNS)
 
 
+#: the columns of ``precision_table``
+PRECISION_COLUMNS = (
+    "line",
+    "setting",
+    "versus",
+    "pairs",
+    "final_success_difference",
+    "final_success_difference_low",
+    "final_success_difference_high",
+    "auc_difference",
+    "auc_difference_low",
+    "auc_difference_high",
+    "seconds_ratio",
+)
+
+
+def precision_table(join: BudgetJoin, *, seed: int = 0) -> pd.DataFrame:
+    """Per line (a control: its name) and setting run in another precision than fp32: the
+    mean paired difference (this setting minus the same setting in fp32, on the same
+    (config_id, seed), both done) of final success and of AUC with 95 % bootstrap
+    intervals, the pairs, and the ratio of the pairs' mean trial CPU seconds."""
+    done = join.trials[join.trials["auc"].notna()]
+    fp32 = done[done["precision"] == "fp32"]
+    keys = ["config_id", "seed"]
+    rows, differences = [], {}
+    for (line, setting), mine in done[done["precision"] != "fp32"].groupby(
+        ["line", "setting"], sort=False
+    ):
+        versus = mine["fp32_setting"].iloc[0]
+        theirs = fp32[(fp32["line"] == line) & (fp32["setting"] == versus)]
+        paired = mine.drop_duplicates(keys).merge(
+            theirs.drop_duplicates(keys), on=keys, suffixes=("", "_fp32")
+        )
+        if paired.empty:
+            continue
+        for score in ("final_success", "auc"):
+            diff = (paired[score] - paired[f"{score}_fp32"]).to_numpy(dtype=float)
+            differences[f"{line} @ {setting}: {score}"] = Group((diff,))
+        rows.append((line, setting, versus, paired))
+    intervals = stratified_bootstrap(
+        mean, differences, reps=RESAMPLES, seed=seed, confidence=CONFIDENCE
+    )
+    table = [
+        {
+            "line": line,
+            "setting": setting,
+            "versus": versus,
+            "pairs": len(paired),
+            **interval_columns(
+                "final_success_difference", intervals[f"{line} @ {setting}: final_success"]
+            ),
+            **interval_columns("auc_difference", intervals[f"{line} @ {setting}: auc"]),
+            "seconds_ratio": float(paired["cpu_s"].mean() / paired["cpu_s_fp32"].mean()),
+        }
+        for line, setting, versus, paired in rows
+    ]
+    return pd.DataFrame(table, columns=PRECISION_COLUMNS)
+
+
 # ---- the section of the combined report ---------------------------------------------
 
 
@@ -498,6 +564,7 @@ class BudgetReport:
     join: BudgetJoin
     table: pd.DataFrame  # ``budget_table``
     controls: pd.DataFrame  # ``controls_table``
+    precision: pd.DataFrame  # ``precision_table`` (empty: every joined study in fp32)
     files: tuple[Path, ...]
     markdown: str  # the section of report.md
 
@@ -506,17 +573,24 @@ def budget_report(
     frames: Sequence[tuple[str, pd.DataFrame]], out: Path, *, seed: int = 0
 ) -> BudgetReport:
     """Join the search-stage ``frames`` (``(study, frame)``, the reference first), write
-    ``budget_table.csv``, ``budget_controls.csv`` and ``budget.png`` to ``out``; return them
+    ``budget_table.csv``, ``budget_controls.csv``, ``budget.png`` and, where a joined trial
+    ran in another precision than fp32, ``precision_table.csv`` to ``out``; return them
     with the report's section."""
     join = join_studies([study_trials(name, frame) for name, frame in frames])
     table = budget_table(join, seed=seed)
     controls = controls_table(join, seed=seed)
+    precision = precision_table(join, seed=seed)
     random = random_success(frames[0][1])
     table.to_csv(out / "budget_table.csv", index=False)
     controls.to_csv(out / "budget_controls.csv", index=False)
     figure = draw_budget(table, controls, out / "budget.png", random)
     files = (out / "budget_table.csv", out / "budget_controls.csv", figure)
-    return BudgetReport(join, table, controls, files, budget_markdown(join, table, controls))
+    markdown = budget_markdown(join, table, controls)
+    if (join.trials["precision"] != "fp32").any():
+        precision.to_csv(out / "precision_table.csv", index=False)
+        files += (out / "precision_table.csv",)
+        markdown += precision_markdown(precision)
+    return BudgetReport(join, table, controls, precision, files, markdown)
 
 
 #: colour and dashes of the controls' reference lines, apart from the encoders' colours
@@ -686,3 +760,32 @@ def budget_markdown(join: BudgetJoin, table: pd.DataFrame, controls: pd.DataFram
         "",
     ]
     return "\n".join(lines)
+
+
+def precision_markdown(table: pd.DataFrame) -> str:
+    """The report's section on the trials run in another precision than fp32."""
+    from sweeper.results._report import MIN_RELIABLE, _fmt, _interval
+
+    lines = [
+        "## Precision: the same trials in bf16 and in fp32",
+        "",
+        "Per encoder line (and control) and setting run in bf16: the mean paired difference "
+        "bf16 minus fp32 on the same (config_id, seed), both done, with its "
+        f"{CONFIDENCE:.0%} bootstrap interval; CPU time: the pairs' mean trial CPU seconds, "
+        f"bf16 / fp32 (the studies may have run on different machines). \\* fewer than "
+        f"{MIN_RELIABLE} pairs: not reliable.",
+        "",
+        "| line | setting | versus | pairs | final success difference [CI] "
+        "| AUC difference [CI] | CPU time bf16 / fp32 |",
+        "|---|---|---|---:|---:|---:|---:|",
+    ]
+    for row in table.to_dict("records"):
+        few = "*" if row["pairs"] < MIN_RELIABLE else ""
+        lines.append(
+            f"| {row['line']} | {row['setting']} | {row['versus']} | {row['pairs']}{few} "
+            f"| {_interval(row, 'final_success_difference', 2)} "
+            f"| {_interval(row, 'auc_difference')} | {_fmt(row['seconds_ratio'], 2)} |"
+        )
+    if table.empty:
+        lines.append("| no pair done in both precisions yet |  |  |  |  |  |  |")
+    return "\n".join([*lines, "", "Data: `precision_table.csv`.", ""])

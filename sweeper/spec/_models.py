@@ -332,6 +332,12 @@ class StudySpec(StrictModel):
         "the goal, so every method's reward is about 1) or a positive factor",
     )
     budget: Budget = Field(description="a mapping with env_steps (required), seed_steps, ...")
+    precision: Literal["fp32", "bf16"] = Field(
+        "fp32",
+        description="the SAC update's and acting's precision: fp32, or bf16 autocast (weights, "
+        "optimiser state, targets and rewards stay fp32); fast on CPUs with AMX or "
+        "AVX512-BF16 and on recent GPUs, slow elsewhere",
+    )
     random_episodes: NonNegInt = Field(
         100,
         description="episodes of a uniformly random agent the driver runs once per study, "

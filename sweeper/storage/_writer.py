@@ -332,6 +332,7 @@ class StudyStore:
                     "key": entry.key,
                     "stage": getattr(entry, "stage", "search"),
                     "plan_hash": plan_hash,
+                    "precision": entry.trial_config.precision,
                     "attempts": 0,
                 }
                 if entry.key in by_key:
