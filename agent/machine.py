@@ -13,6 +13,7 @@ recorded curve where the description is the same.
 
 from __future__ import annotations
 
+import os
 import platform
 from pathlib import Path
 
@@ -57,9 +58,19 @@ def native_bf16() -> list[str]:
     return [flag for flag in ("amx_bf16", "avx512_bf16") if flag in flags]
 
 
+#: names a layout (``channels_last`` or ``nchw``) that replaces the one chosen here
+LAYOUT_VARIABLE = "GCRL_CONV_LAYOUT"
+
+
 def conv_layout(device: torch.device) -> str:
-    """The layout the agent's convolutions run in here: ``channels_last`` on CUDA and where
-    ``CONV_LAYOUTS`` says so, else ``nchw`` (PyTorch's default)."""
+    """The layout the agent's convolutions run in here: ``GCRL_CONV_LAYOUT`` when set,
+    else ``channels_last`` on CUDA and where ``CONV_LAYOUTS`` says so, else ``nchw``
+    (PyTorch's default)."""
+    forced = os.environ.get(LAYOUT_VARIABLE)
+    if forced:
+        if forced not in ("channels_last", "nchw"):
+            raise ValueError(f"{LAYOUT_VARIABLE} must be channels_last or nchw, got {forced!r}")
+        return forced
     if device.type == "cuda":
         return "channels_last"
     return CONV_LAYOUTS.get(_cpu().get("vendor_id", ""), "nchw")

@@ -9,8 +9,8 @@ channels-last and NCHW. Each row: ms per update (median), the convolution and ma
 GFLOP it does (``torch.utils.flop_counter``), GFLOP/s, and that as a % of the matching
 peak. Targets (issue 34): fp32 at batch 256 >= 80% of the fp32 peak, bf16 >= 35% of the
 bf16 peak. Last, with ``--trial-steps N``, a real trial at ``bench_learning.FETCH_CPU``
-cut to N env steps (``bench_gpu_trial``'s measurement): its env steps per second while
-learning.
+cut to N env steps (``bench_gpu_trial``'s measurement), in fp32 in either conv layout and
+in bf16: its env steps per second while learning.
 
 Run: ``./run python benchmarks/bench_update_speed.py [--threads 1] [--repeats 5]
 [--sizes 84,48] [--batches 32,128,256] [--trial-steps 1500]``
@@ -19,6 +19,8 @@ Run: ``./run python benchmarks/bench_update_speed.py [--threads 1] [--repeats 5]
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -32,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from agent.config import SACConfig
-from agent.machine import CPUINFO, cpu_fields, native_bf16
+from agent.machine import CPUINFO, LAYOUT_VARIABLE, conv_layout, cpu_fields, native_bf16
 from agent.sac import PRECISIONS, SAC
 
 #: the targets of issue 34, as a fraction of the matching matmul peak
@@ -104,16 +106,26 @@ def time_update(
     return median_seconds(update, repeats), counter.get_total_flops() / 1e9
 
 
-def trial_rate(steps: int, threads: int) -> str:
-    """A real trial at FETCH_CPU cut to ``steps`` env steps: env steps per second while it
-    learns (``bench_gpu_trial.run_together``, one trial)."""
+def trial_rates(steps: int, threads: int) -> list[str]:
+    """A real trial at FETCH_CPU cut to ``steps`` env steps, in fp32 in both conv layouts
+    and in bf16 in this CPU's (``GCRL_CONV_LAYOUT``): env steps per second while it learns
+    (``bench_gpu_trial.run_together``, one trial)."""
     from bench_gpu_trial import measured_config, run_together
     from bench_learning import FETCH_CPU
 
-    (phases,) = run_together(measured_config(FETCH_CPU, steps, "cpu", threads), 1)
-    return (f"trial at FETCH_CPU (84x84, 16 filters, batch 32, 1 update per step), "
-            f"{steps} env steps: {phases.learn_rate:.1f} env steps/s while learning, "
-            f"{phases.seed_rate:.0f} in its random seed phase")  # fmt: skip
+    here = conv_layout(torch.device("cpu"))
+    lines = []
+    for precision, layout in (("fp32", "channels_last"), ("fp32", "nchw"), ("bf16", here)):
+        config = dataclasses.replace(FETCH_CPU, precision=precision)
+        os.environ[LAYOUT_VARIABLE] = layout  # the spawned trial process reads it
+        try:
+            (phases,) = run_together(measured_config(config, steps, "cpu", threads), 1)
+        finally:
+            del os.environ[LAYOUT_VARIABLE]
+        lines.append(f"trial at FETCH_CPU (84x84, 16 filters, batch 32, 1 update per step), "
+                     f"{precision}, {layout}, {steps} env steps: {phases.learn_rate:.2f} env "
+                     f"steps/s while learning")  # fmt: skip
+    return lines
 
 
 def ints(text: str) -> list[int]:
@@ -160,7 +172,9 @@ def main() -> None:
         print(f"| {size}x{size} | {batch_size} | {precision} | {layout} | {seconds * 1000:.0f} | "
               f"{gflop:.1f} | {rate:.1f} | {share:.0%}{target} |")  # fmt: skip
     if args.trial_steps:
-        print(trial_rate(args.trial_steps, args.threads))
+        print(f"conv layout of this CPU's trials: {conv_layout(torch.device('cpu'))}")
+        for line in trial_rates(args.trial_steps, args.threads):
+            print(line, flush=True)
 
 
 if __name__ == "__main__":

@@ -107,6 +107,9 @@ def compare_compile(args: argparse.Namespace, precision: str) -> None:
     eager.update(batches[0])
     eager_s, eager_losses = timed(eager.update, batches[1:])
     agent = make_agent(args, precision)
+    # inductor draws its own random numbers unless told to use eager's: without this the
+    # compiled update's noise (actions, shifts) differs and so do its losses
+    torch._inductor.config.fallback_random = True
     compiled = torch.compile(agent.update)
     start = time.perf_counter()
     try:

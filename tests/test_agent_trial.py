@@ -191,6 +191,11 @@ def test_the_conv_layout_follows_the_cpu_vendor(
     assert machine.conv_layout(torch.device("cpu")) == layout
     assert machine.describe(torch.device("cpu"))["conv_layout"] == layout
     assert machine.conv_layout(torch.device("cuda")) == "channels_last"
+    monkeypatch.setenv("GCRL_CONV_LAYOUT", "nchw")
+    assert machine.conv_layout(torch.device("cuda")) == "nchw"
+    monkeypatch.setenv("GCRL_CONV_LAYOUT", "NHWC")
+    with pytest.raises(ValueError, match="GCRL_CONV_LAYOUT must be channels_last or nchw"):
+        machine.conv_layout(torch.device("cpu"))
 
 
 def test_a_trial_paused_at_a_rung_goes_on_to_the_uninterrupted_curve(tmp_path: Path) -> None:

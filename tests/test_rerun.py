@@ -8,7 +8,8 @@ import math
 from sweeper.run.cli_rerun import first_difference, machine_lines
 
 CURVE = {"step": [0, 100], "success_rate": [0.0, 0.5], "final_distance": [0.3, math.nan]}
-HERE = {"cpu": "AuthenticAMD 26 2", "cpu_name": "AMD EPYC", "kernels": "AVX512", "torch": "2"}
+HERE = {"cpu": "AuthenticAMD 26 2", "cpu_name": "AMD EPYC", "kernels": "AVX512", "torch": "2",
+        "conv_layout": "channels_last"}  # fmt: skip
 
 
 def test_curves_are_compared_float_for_float_nan_equal_to_nan():
@@ -31,12 +32,18 @@ def test_the_machines_say_whether_the_same_curve_is_to_be_expected():
     assert same[-1] == "the same machine: the curve should be the recorded one"
     intel = {**HERE, "cpu": "GenuineIntel 6 143", "cpu_name": "Xeon"}
     other = machine_lines([{"from_step": 0, **intel}, {"from_step": 5000, **HERE}], HERE)
-    assert (
-        other[0] == "recorded on: Xeon (GenuineIntel 6 143), kernels AVX512, torch 2 (from step 0)"
+    assert other[0] == (
+        "recorded on: Xeon (GenuineIntel 6 143), kernels AVX512, torch 2, conv layout "
+        "channels_last (from step 0)"
     )
     assert other[-1].startswith("another machine (or unknown)")
     resumed = machine_lines([{"from_step": 5000, **HERE}], HERE)  # an older checkpoint's runs
     assert "the runs before step 5000 were not recorded" in resumed
     assert resumed[-1].startswith("another machine (or unknown)")
+    # a record from before the layout was recorded ran channels-last
+    older = {k: v for k, v in HERE.items() if k != "conv_layout"}
+    assert machine_lines([{"from_step": 0, **older}], HERE)[-1].startswith("the same machine")
+    nchw = {**HERE, "conv_layout": "nchw"}
+    assert machine_lines([{"from_step": 0, **older}], nchw)[-1].startswith("another machine")
     unknown = machine_lines(None, HERE)
     assert unknown[0].startswith("recorded on: not recorded")
