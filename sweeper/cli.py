@@ -72,16 +72,17 @@ def _add_spec_arguments(parser: argparse.ArgumentParser, specs: Specs) -> None:
     """The spec file(s) and the storage override of a command taking ``specs``."""
     if specs is Specs.NONE:
         return
+    storage = (
+        "SQLAlchemy URL of the study database, overriding the spec's "
+        "(default: sqlite:///runs/<study>/study.db; postgresql://user@host/db for a cluster)"
+    )
     if specs is Specs.MANY:
         parser.add_argument("spec", nargs="+", help="study specs, YAML files (see studies/)")
+        storage += "; several specs: once for all, or once per spec in their order"
+        parser.add_argument("--storage", metavar="URL", action="append", help=storage)
     else:
         parser.add_argument("spec", help="the study spec, a YAML file (see studies/)")
-    parser.add_argument(
-        "--storage",
-        metavar="URL",
-        help="SQLAlchemy URL of the study database, overriding the spec's "
-        "(default: sqlite:///runs/<study>/study.db; postgresql://user@host/db for a cluster)",
-    )
+        parser.add_argument("--storage", metavar="URL", help=storage)
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -108,7 +109,15 @@ def _load_specs(args: argparse.Namespace) -> list[StudySpec]:
     specs = [load_spec(path) for path in paths]
     if args.storage is None:
         return specs
-    return [spec.with_overrides(storage=args.storage) for spec in specs]
+    urls = [args.storage] if isinstance(args.storage, str) else args.storage
+    if len(urls) == 1:
+        urls *= len(specs)
+    if len(urls) != len(specs):
+        raise SpecError(
+            f"--storage: give one URL for all {len(specs)} specs or one per spec, "
+            f"got {len(urls)}"
+        )
+    return [spec.with_overrides(storage=url) for spec, url in zip(specs, urls, strict=True)]
 
 
 def main(argv: list[str] | None = None) -> int:

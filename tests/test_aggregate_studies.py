@@ -162,6 +162,14 @@ def test_default_output_folder_and_a_bad_spec(combined, tmp_path, capsys):
         capsys.readouterr()
         assert cli.main(["aggregate", specs[0], "nope.yaml", "--storage", url]) == 2
         assert "nope.yaml" in capsys.readouterr().err
+        # one --storage per spec, in their order; another count is one line, exit 2
+        two = ["--storage", url, "--storage", url]
+        assert cli.main(["aggregate", specs[0], specs[1], *two]) == 0
+        capsys.readouterr()
+        assert cli.main(["aggregate", specs[0], specs[1], *two, "--storage", url]) == 2
+        err = capsys.readouterr().err
+        assert "--storage: give one URL for all 2 specs or one per spec, got 3" in err
+        assert len(err.strip().splitlines()) == 1
     finally:
         os.chdir(here)
 

@@ -216,14 +216,14 @@ def test_a_study_in_bf16_is_paired_with_the_same_trials_in_fp32(frames):
     assert list(precision.index) == ["pixel", "state"]
     for line in ("pixel", "state"):
         row = precision.loc[line]
-        assert (row["setting"], row["versus"], row["pairs"]) == ("1/16, precision bf16", "1/16", 4)
+        assert (row["precision"], row["settings"], row["pairs"]) == ("bf16", "1/16", 4)
         for column in ("", "_low", "_high"):
             assert row[f"final_success_difference{column}"] == pytest.approx(-0.1)
             assert row[f"auc_difference{column}"] < 0
         assert row["seconds_ratio"] == pytest.approx(0.5)
     text = precision_markdown(precision_table(join))
     assert "## Precision: the same trials in bf16 and in fp32" in text
-    assert "| pixel | 1/16, precision bf16 | 1/16 | 4* | -0.10 [-0.10, -0.10] |" in text
+    assert "| pixel | bf16 | 1/16 | 4* | -0.10 [-0.10, -0.10] |" in text
     fp32_only = join_studies([study_trials(n, frames[n]) for n in ("cpu", "budget")])
     assert precision_table(fp32_only).empty
 

@@ -498,8 +498,8 @@ def controls_table(join: BudgetJoin, *, seed: int = 0) -> pd.DataFrame:
 #: the columns of ``precision_table``
 PRECISION_COLUMNS = (
     "line",
-    "setting",
-    "versus",
+    "precision",
+    "settings",
     "pairs",
     "final_success_difference",
     "final_success_difference_low",
@@ -512,46 +512,42 @@ PRECISION_COLUMNS = (
 
 
 def precision_table(join: BudgetJoin, *, seed: int = 0) -> pd.DataFrame:
-    """Per line (a control: its name) and setting run in another precision than fp32: the
-    mean paired difference (this setting minus the same setting in fp32, on the same
-    (config_id, seed), both done) of final success and of AUC with 95 % bootstrap
-    intervals, the pairs, and the ratio of the pairs' mean trial CPU seconds."""
+    """Per line (a control: its name) and precision other than fp32: each done trial paired
+    with its fp32 twin (the same line, config_id and seed, at the same setting but for the
+    precision), the mean paired difference (this precision minus fp32) of final success
+    and of AUC with 95 % bootstrap intervals, the pairs, the settings they span, and the
+    ratio of the pairs' mean trial CPU seconds."""
     done = join.trials[join.trials["auc"].notna()]
-    fp32 = done[done["precision"] == "fp32"]
-    keys = ["config_id", "seed"]
-    rows, differences = [], {}
-    for (line, setting), mine in done[done["precision"] != "fp32"].groupby(
-        ["line", "setting"], sort=False
-    ):
-        versus = mine["fp32_setting"].iloc[0]
-        theirs = fp32[(fp32["line"] == line) & (fp32["setting"] == versus)]
-        paired = mine.drop_duplicates(keys).merge(
-            theirs.drop_duplicates(keys), on=keys, suffixes=("", "_fp32")
+    keys = ["line", "config_id", "seed", "fp32_setting"]
+    fp32 = done[done["precision"] == "fp32"].drop_duplicates(keys)
+    other = done[done["precision"] != "fp32"].drop_duplicates(keys)
+    paired = other.merge(fp32, on=keys, suffixes=("", "_fp32"))
+    groups = dict(iter(paired.groupby(["line", "precision"], sort=False)))
+    differences = {
+        f"{line} {precision}: {score}": Group(
+            ((part[score] - part[f"{score}_fp32"]).to_numpy(dtype=float),)
         )
-        if paired.empty:
-            continue
-        for score in ("final_success", "auc"):
-            diff = (paired[score] - paired[f"{score}_fp32"]).to_numpy(dtype=float)
-            differences[f"{line} @ {setting}: {score}"] = Group((diff,))
-        rows.append((line, setting, versus, paired))
+        for (line, precision), part in groups.items()
+        for score in ("final_success", "auc")
+    }
     intervals = stratified_bootstrap(
         mean, differences, reps=RESAMPLES, seed=seed, confidence=CONFIDENCE
     )
-    table = [
+    rows = [
         {
             "line": line,
-            "setting": setting,
-            "versus": versus,
-            "pairs": len(paired),
+            "precision": precision,
+            "settings": "; ".join(dict.fromkeys(part["fp32_setting"])),
+            "pairs": len(part),
             **interval_columns(
-                "final_success_difference", intervals[f"{line} @ {setting}: final_success"]
+                "final_success_difference", intervals[f"{line} {precision}: final_success"]
             ),
-            **interval_columns("auc_difference", intervals[f"{line} @ {setting}: auc"]),
-            "seconds_ratio": float(paired["cpu_s"].mean() / paired["cpu_s_fp32"].mean()),
+            **interval_columns("auc_difference", intervals[f"{line} {precision}: auc"]),
+            "seconds_ratio": float(part["cpu_s"].mean() / part["cpu_s_fp32"].mean()),
         }
-        for line, setting, versus, paired in rows
+        for (line, precision), part in groups.items()
     ]
-    return pd.DataFrame(table, columns=PRECISION_COLUMNS)
+    return pd.DataFrame(rows, columns=PRECISION_COLUMNS)
 
 
 # ---- the section of the combined report ---------------------------------------------
@@ -769,20 +765,21 @@ def precision_markdown(table: pd.DataFrame) -> str:
     lines = [
         "## Precision: the same trials in bf16 and in fp32",
         "",
-        "Per encoder line (and control) and setting run in bf16: the mean paired difference "
-        "bf16 minus fp32 on the same (config_id, seed), both done, with its "
-        f"{CONFIDENCE:.0%} bootstrap interval; CPU time: the pairs' mean trial CPU seconds, "
-        f"bf16 / fp32 (the studies may have run on different machines). \\* fewer than "
-        f"{MIN_RELIABLE} pairs: not reliable.",
+        "Per encoder line (and control): each done bf16 trial paired with its fp32 twin (the "
+        "same configuration, seed and setting but for the precision), the mean paired "
+        f"difference bf16 minus fp32 with its {CONFIDENCE:.0%} bootstrap interval; CPU time: "
+        "the pairs' mean trial CPU seconds, bf16 / fp32 (the studies may have run on "
+        f"different machines, or under different loads). \\* fewer than {MIN_RELIABLE} "
+        "pairs: not reliable.",
         "",
-        "| line | setting | versus | pairs | final success difference [CI] "
-        "| AUC difference [CI] | CPU time bf16 / fp32 |",
+        "| line | precision | settings (fp32) | pairs | final success difference [CI] "
+        "| AUC difference [CI] | CPU time / fp32's |",
         "|---|---|---|---:|---:|---:|---:|",
     ]
     for row in table.to_dict("records"):
         few = "*" if row["pairs"] < MIN_RELIABLE else ""
         lines.append(
-            f"| {row['line']} | {row['setting']} | {row['versus']} | {row['pairs']}{few} "
+            f"| {row['line']} | {row['precision']} | {row['settings']} | {row['pairs']}{few} "
             f"| {_interval(row, 'final_success_difference', 2)} "
             f"| {_interval(row, 'auc_difference')} | {_fmt(row['seconds_ratio'], 2)} |"
         )

@@ -179,7 +179,7 @@ def run(specs: list[StudySpec], args: argparse.Namespace) -> int:
         f"  figures:   {', '.join(figures)}",
     ]
     if len(specs) == 1:
-        storage = f" --storage {redact(args.storage)}" if args.storage else ""
+        storage = f" --storage {redact(args.storage[0])}" if args.storage else ""
         lines.append(f"  dashboard: sweeper dashboard {args.spec[0]}{storage}")
     budget = getattr(result, "budget", None)
     if budget is not None:  # several studies of one env: where the budget table is
