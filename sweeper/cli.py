@@ -114,8 +114,7 @@ def _load_specs(args: argparse.Namespace) -> list[StudySpec]:
         urls *= len(specs)
     if len(urls) != len(specs):
         raise SpecError(
-            f"--storage: give one URL for all {len(specs)} specs or one per spec, "
-            f"got {len(urls)}"
+            f"--storage: give one URL for all {len(specs)} specs or one per spec, got {len(urls)}"
         )
     return [spec.with_overrides(storage=url) for spec, url in zip(specs, urls, strict=True)]
 
