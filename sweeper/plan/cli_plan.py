@@ -17,7 +17,6 @@ from dataclasses import replace
 from fractions import Fraction
 from typing import TYPE_CHECKING, TextIO
 
-from agent import machine
 from sweeper.plan._entries import A1, A1_SAMPLES, Plan, PlanEntry, build_plan, outside_a1
 from sweeper.plan._estimate import (
     TrialEstimate,
@@ -138,6 +137,8 @@ def precision_lines(
     """The update's precision; for bf16 on CPU trials on a CPU without native bf16 (no AMX,
     no AVX512-BF16), a warning with how much slower one trial is than in fp32 here (its
     first calibrated entry calibrated again in fp32)."""
+    from agent import machine  # here: `sweeper plan --help` imports no torch
+
     if spec.precision == "fp32":
         return ["precision: fp32"]
     lines = ["precision: bf16 autocast (weights, optimiser state, targets and rewards fp32)"]

@@ -39,7 +39,7 @@ from pydantic import (
     model_validator,
 )
 
-from agent.config import EPISODE_STEPS, SACConfig
+from agent.config import EPISODE_STEPS, PRECISIONS, SACConfig
 from encoders.options import hyperparameters
 from sweeper.spec._errors import excerpt, format_errors, spec_error, suggest
 from sweeper.spec._space import (
@@ -332,7 +332,7 @@ class StudySpec(StrictModel):
         "the goal, so every method's reward is about 1) or a positive factor",
     )
     budget: Budget = Field(description="a mapping with env_steps (required), seed_steps, ...")
-    precision: Literal["fp32", "bf16"] = Field(
+    precision: Literal[PRECISIONS] = Field(
         "fp32",
         description="the SAC update's and acting's precision: fp32, or bf16 autocast (weights, "
         "optimiser state, targets and rewards stay fp32); fast on CPUs with AMX or "
