@@ -7,9 +7,10 @@ On CUDA, at the thesis' appendix A.1 setting (``bench_learning.FETCH_A1``: fetch
   memory each time as a trial's replay sample is), timed over ``actor_update_every``
   updates (one with the actor) with ``torch.cuda.synchronize()`` after a warm-up: fp32
   as trials run it (torch's defaults: matmul TF32 off, cuDNN TF32 on), fp32 with TF32
-  on, and under bf16 autocast (weights and optimiser state stay fp32);
+  on, and with the agent's ``precision: bf16`` (autocast; weights and optimiser state fp32);
 - env steps per second of short real trials (``agent.train``, ``--trial-steps`` env
-  steps, the first third random seed steps), 1, 2, 4 and 8 at once on the GPU
+  steps, the first third random seed steps), in fp32 and in bf16, 1, 2, 4 and 8 at once
+  on the GPU
   (``--concurrency``), each in its own spawned process as Ray runs trials with
   ``gpus_per_trial`` 1/n, started together behind a barrier once CUDA is up in each. A
   trial's reports time its phases: setup (envs, reward scale, networks), seed phase,
@@ -91,15 +92,14 @@ def ms_per_update(
 ) -> float:
     """Median ms per SAC update at ``sac`` on ``size`` x ``size`` images, timed in groups
     of ``actor_update_every`` updates (each group updates the actor once, as a trial's
-    average does); ``bf16``: under bf16 autocast."""
-    agent = SAC((size, size, 3), (size, size, 3), 4, sac, device)
+    average does); ``bf16``: the agent's ``precision: bf16`` (autocast)."""
+    agent = SAC((size, size, 3), (size, size, 3), 4, sac, device, "bf16" if bf16 else "fp32")
     batch = random_batch(size, sac.batch_size, np.random.default_rng(0))
     group = sac.actor_update_every
 
     def updates(count: int) -> None:
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-            for _ in range(count):
-                agent.update(batch)
+        for _ in range(count):
+            agent.update(batch)
         synchronize(device)
 
     updates(WARMUP[device.type])
@@ -388,34 +388,37 @@ def gpu_path(args: argparse.Namespace, device: torch.device) -> None:
 
     if on_gpu:
         torch.cuda.empty_cache()  # the timed updates' memory, before the trials start
-    config = measured_config(base, args.trial_steps, str(device), args.threads)
     priced, vgg = study_entries(args.spec)
-    print(
-        f"\ntrials: {config.total_steps} env steps ({config.seed_steps} seed steps), "
-        f"{config.eval_episodes} evaluation episodes every {config.eval_every}, fp32 at "
-        f"torch's defaults; env steps/s per trial and all together, mean over the trials\n"
-    )
-    print(
-        "| trials at once | gpus_per_trial | learning steps/s per trial | all together | "
-        "overlap | seed steps/s | eval steps/s | env side | setup s | study (priced) |"
-    )
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    results: dict[int, list[Phases]] = {}
-    for count in args.concurrency:
-        measured = run_together(config, count)
-        results[count] = measured
-        learn = [m.learn_rate for m in measured]
-        env_side = statistics.mean(m.env_share for m in measured)
+    for precision in ("fp32", "bf16") if bf16 else ("fp32",):
+        config = measured_config(base, args.trial_steps, str(device), args.threads)
+        config = dataclasses.replace(config, precision=precision)
         print(
-            f"| {count} | {1 / count:g} | {statistics.mean(learn):.1f} | {sum(learn):.1f} | "
-            f"{100 * overlap(measured):.0f}% | "
-            f"{statistics.mean(m.seed_rate for m in measured):.0f} | "
-            f"{statistics.mean(m.eval_rate for m in measured):.0f} | {100 * env_side:.0f}% | "
-            f"{statistics.mean(m.setup for m in measured):.1f} | "
-            f"{format_duration(study_seconds(priced, measured, count))} |",
-            flush=True,
+            f"\ntrials in {precision}: {config.total_steps} env steps ({config.seed_steps} seed "
+            f"steps), {config.eval_episodes} evaluation episodes every {config.eval_every}, "
+            "torch's TF32 defaults; env steps/s per trial and all together, mean over the "
+            "trials\n"
         )
-    print_study(args.spec, priced, vgg, results)
+        print(
+            "| trials at once | gpus_per_trial | learning steps/s per trial | all together | "
+            "overlap | seed steps/s | eval steps/s | env side | setup s | study (priced) |"
+        )
+        print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+        results: dict[int, list[Phases]] = {}
+        for count in args.concurrency:
+            measured = run_together(config, count)
+            results[count] = measured
+            learn = [m.learn_rate for m in measured]
+            env_side = statistics.mean(m.env_share for m in measured)
+            print(
+                f"| {count} | {1 / count:g} | {statistics.mean(learn):.1f} | {sum(learn):.1f} | "
+                f"{100 * overlap(measured):.0f}% | "
+                f"{statistics.mean(m.seed_rate for m in measured):.0f} | "
+                f"{statistics.mean(m.eval_rate for m in measured):.0f} | {100 * env_side:.0f}% | "
+                f"{statistics.mean(m.setup for m in measured):.1f} | "
+                f"{format_duration(study_seconds(priced, measured, count))} |",
+                flush=True,
+            )
+        print_study(args.spec, priced, vgg, results)
 
 
 def cpu_figures(args: argparse.Namespace) -> None:
