@@ -23,7 +23,7 @@ from agent.metrics import normalized_auc
 from sweeper import cli
 from sweeper.run import _launch as launcher
 from sweeper.run._launch import launch, prepare
-from sweeper.storage import CURVE_ATTR, StudyStore, curve_of, open_storage, trial_attr
+from sweeper.storage import CURVE_ATTR, StudyStore, artifacts_in, curve_of, open_storage, trial_attr
 from sweeper.storage._writer import _this_driver
 
 GRID = [0, 100, 200, 300]  # studies/ci.yaml: env_steps 300, eval_every 100
@@ -140,6 +140,23 @@ def test_launch_ci_end_to_end_then_status_then_a_relaunch_reruns_nothing(
     assert cli.main(["aggregate", str(CI_SPEC), "--storage", "sqlite:///pub/study.db",
                      "--out", "again", "--no-dashboard"]) == 0  # fmt: skip
     assert (tmp_path / "again" / "auc_table.csv").read_text() == published
+
+    # a published video lost: a rerun with the recorded curve films it again, byte for byte
+    (pixel,) = [t for t in load("sqlite:///pub/study.db").get_trials()
+                if t.user_attrs["key"] == "pixel/0/0"]  # fmt: skip
+    (meta,) = artifacts_in(pixel.system_attrs)
+    lost = pub / "artifacts" / meta["artifact_id"]
+    original = lost.read_bytes()
+    lost.unlink()
+    capsys.readouterr()
+    pub_url = ["--storage", "sqlite:///pub/study.db"]
+    assert cli.main(["publish", str(CI_SPEC), *pub_url, "--out", "pub2"]) == 2  # names it
+    assert cli.main(["rerun", str(CI_SPEC), "pixel/0/0", *pub_url, "--restore-videos"]) == 0
+    out = capsys.readouterr().out
+    assert f"video {meta['filename']}: restored to pub/artifacts/{meta['artifact_id']}" in out
+    assert lost.read_bytes() == original
+    assert cli.main(["rerun", str(CI_SPEC), "pixel/0/0", *pub_url, "--restore-videos"]) == 0
+    assert f"video {meta['filename']}: present" in capsys.readouterr().out
     capsys.readouterr()
     assert cli.main(["publish", str(CI_SPEC), "--out", "runs/ci"]) == 2  # onto itself
     assert cli.main(["publish", str(CI_SPEC), "--storage", "postgresql://u@127.0.0.1/x"]) == 2

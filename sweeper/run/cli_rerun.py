@@ -10,6 +10,12 @@ CPU kernels round differently by vendor and instruction set: ``agent.machine``),
 machines each run of the trial was recorded on are shown beside this one: a difference on
 another machine is expected, on the same machine it is a bug.
 
+With ``--restore-videos`` the trial films its videos again, and where its curve is the
+recorded one exactly (so its episodes are the recorded ones), each video the trial's
+record names but the study's artifact store lacks is written there under its recorded id:
+a published study whose video files were lost gets them back without a change to its
+database. On another machine the curve differs and nothing is written.
+
 Exit codes: 0 the same curve, 1 another curve, 2 the study, key or trial cannot be used.
 """
 
@@ -26,7 +32,10 @@ from typing import TYPE_CHECKING, Any
 from sweeper.plan import CONFIRM, PlanEntry, build_plan, confirm_plan
 from sweeper.spec import plural
 from sweeper.storage import (
+    ArtifactStore,
     NoStudy,
+    artifact_location,
+    artifacts_in,
     check_plan,
     current_trials,
     curve_of,
@@ -44,6 +53,12 @@ if TYPE_CHECKING:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The key of the trial to re-run (``sweeper.cli`` adds the spec and --storage)."""
     parser.add_argument("key", help="the trial's plan key, e.g. pixel/0/1 (method/config/seed)")
+    parser.add_argument(
+        "--restore-videos",
+        action="store_true",
+        help="film the trial again and, if its curve is the recorded one exactly, write the "
+        "videos its record names that the study's artifact store is missing",
+    )
 
 
 def first_difference(recorded: dict[str, list[float]], rerun: dict[str, list[float]]) -> str | None:
@@ -118,9 +133,10 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     config = dataclasses.replace(
         config,
         checkpoint_dir=None,
-        video_steps=(),
+        video_steps=config.video_steps if args.restore_videos else (),
         stop_at=last if last < config.total_steps else None,  # a trial halving stopped
     )
+    videos: dict[str, bytes] = {}
     here = this_machine(resolve_device(config.device))
     print(f"study {spec.study!r} in {redact(spec.storage_url)}: {args.key} (trial {trial.number})")
     print("\n".join(machine_lines(trial_attr(trial, "machines"), here)))
@@ -139,7 +155,7 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
 
     torch.set_num_threads(config.threads)
     try:
-        result = agent.train(config, report)
+        result = agent.train(config, report, videos.__setitem__ if args.restore_videos else None)
     except (ValueError, OSError) as e:  # e.g. vgg's weights file is not on this machine
         print(f"sweeper rerun: {args.key} cannot run here: {e}", file=sys.stderr)
         return 2
@@ -148,9 +164,40 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     if difference is None:
         print(f"the same curve: every metric at all {plural(len(recorded['step']), 'step')} "
               "is the recorded float")  # fmt: skip
+        if args.restore_videos:
+            print("\n".join(restore_videos(spec, trial, videos)))
         return 0
     print(f"another curve: first difference at {difference}")
+    if args.restore_videos:
+        print("videos not restored: this run's episodes are not the recorded ones")
     return 1
+
+
+def restore_videos(spec: StudySpec, trial: Any, videos: dict[str, bytes]) -> list[str]:
+    """Write each of ``trial``'s recorded videos that the study's artifact store lacks,
+    from ``videos`` (file name -> bytes, filmed by a run with the recorded curve), under
+    its recorded artifact id; one line per video of the record."""
+    import io
+
+    from optuna.artifacts.exceptions import ArtifactNotFound
+
+    store = ArtifactStore(artifact_location(spec))
+    metas = artifacts_in(trial.system_attrs)
+    lines = []
+    for meta in sorted(metas, key=lambda meta: meta["filename"]):
+        name, artifact_id = meta["filename"], meta["artifact_id"]
+        try:
+            store.open_reader(artifact_id).close()
+            lines.append(f"video {name}: present ({artifact_id}), left as it is")
+            continue
+        except ArtifactNotFound:
+            pass
+        if name not in videos:
+            lines.append(f"video {name}: missing, and this run filmed no such episode")
+            continue
+        store.write(artifact_id, io.BytesIO(videos[name]))
+        lines.append(f"video {name}: restored to {store.location}/{artifact_id}")
+    return lines or ["the trial's record names no video"]
 
 
 def _recorded(spec: StudySpec, key: str) -> tuple[PlanEntry, Any]:

@@ -29,6 +29,7 @@ The public names are re-exported here; a module constant (``DRIVER_STALE_SECONDS
 from sweeper.storage._artifacts import (
     ArtifactStore,
     artifact_location,
+    artifacts_in,
     trial_artifacts,
     upload_once,
 )
@@ -134,6 +135,7 @@ __all__ = [
     "Upgrade",
     "applies_to",
     "artifact_location",
+    "artifacts_in",
     "busy_message",
     "check_intact",
     "check_plan",

@@ -20,6 +20,7 @@ import json
 import mimetypes
 import re
 import uuid
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO
 
@@ -83,8 +84,12 @@ class ArtifactStore:
 def trial_artifacts(storage: optuna.storages.BaseStorage, trial_id: int) -> list[dict[str, Any]]:
     """The artifact meta of a trial (``artifact_id``, ``filename``, ``mimetype``,
     ``encoding``), in no particular order."""
-    attrs = storage.get_trial_system_attrs(trial_id)
-    return [json.loads(v) for k, v in attrs.items() if k.startswith(ATTR_PREFIX)]
+    return artifacts_in(storage.get_trial_system_attrs(trial_id))
+
+
+def artifacts_in(system_attrs: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The artifact meta among a trial's system attrs (a ``FrozenTrial``'s, or read)."""
+    return [json.loads(v) for k, v in system_attrs.items() if k.startswith(ATTR_PREFIX)]
 
 
 def upload_once(
