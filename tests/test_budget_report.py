@@ -16,6 +16,7 @@ from optuna.trial import TrialState
 from synthetic_study import write_planned_study
 
 from sweeper import cli
+from sweeper.plan import build_plan
 from sweeper.results._budget import (
     a1_departures,
     budget_markdown,
@@ -272,3 +273,30 @@ def test_the_command_joins_the_published_study_with_a_budget_study(tmp_path, cap
     report = (out / "report.md").read_text()
     assert "## Gradient budget" in report and "left out of the join" not in report
     assert (out / "budget.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_the_bf16_pairs_span_settings_that_differ_in_sampled_values(tmp_path):
+    """A sampled value outside A.1 (lr 3e-4) splits a study's configurations into two
+    settings; each bf16 trial still pairs with its own fp32 twin, and the line's row pools
+    the pairs of both settings."""
+    url = f"sqlite:///{tmp_path / 'studies.db'}"
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    text = load_spec(ROOT / "studies" / "point_reach_precision.yaml").model_dump(mode="json")
+    fp32 = parse_spec(text | {"study": "fp32", "methods": {"pixel": {}}})
+    bf16 = parse_spec(text | {"study": "bf16", "methods": {"pixel": {}}, "precision": "bf16"})
+    lrs = {e.config_id: e.trial_config.sac.lr for e in build_plan(fp32).entries}
+    assert sorted(set(lrs.values())) == [3e-4, 1e-3]  # both settings are there
+
+    def level(key: str) -> float:  # differs by configuration: a wrong pairing would show
+        _, config_id, seed = key.split("/")
+        return 0.3 + 0.2 * int(config_id) + 0.05 * int(seed)
+
+    write_planned_study(url, fp32, final_success=level)
+    write_planned_study(url, bf16, final_success=lambda key: level(key) + 0.1)
+    frames = {n: stage_frame(load_study_frame(url, n), "search") for n in ("fp32", "bf16")}
+    join = join_studies([study_trials(n, frames[n]) for n in ("fp32", "bf16")])
+    (row,) = precision_table(join).to_dict("records")
+    assert (row["line"], row["precision"], row["pairs"]) == ("pixel", "bf16", 6)
+    assert set(row["settings"].split("; ")) == {"1/16", "1/16, lr 0.0003"}
+    for column in ("", "_low", "_high"):
+        assert row[f"final_success_difference{column}"] == pytest.approx(0.1)
