@@ -39,21 +39,21 @@ def cpu_fields(cpuinfo: str) -> dict[str, str]:
     return {k: fields[k] for k in ("vendor_id", "cpu family", "model", "model name") if k in fields}
 
 
-def _cpu() -> dict[str, str]:
+def _cpuinfo() -> str:
     try:
-        return cpu_fields(CPUINFO.read_text())
+        return CPUINFO.read_text()
     except OSError:  # not Linux: what the platform module knows
-        return {}
+        return ""
+
+
+def _cpu() -> dict[str, str]:
+    return cpu_fields(_cpuinfo())
 
 
 def native_bf16() -> list[str]:
     """The CPU's native bf16 instructions among AMX-BF16 and AVX512-BF16 (the flags
     ``/proc/cpuinfo`` lists; empty: bf16 is emulated, slower than fp32)."""
-    try:
-        text = CPUINFO.read_text()
-    except OSError:
-        return []
-    flags = next((line.split(":", 1)[1].split() for line in text.splitlines()
+    flags = next((line.split(":", 1)[1].split() for line in _cpuinfo().splitlines()
                   if line.startswith("flags")), [])  # fmt: skip
     return [flag for flag in ("amx_bf16", "avx512_bf16") if flag in flags]
 
