@@ -22,11 +22,12 @@ import torch
 CPUINFO = Path("/proc/cpuinfo")
 
 #: the conv layout by CPU vendor, measured with benchmarks/bench_update_speed.py (both
-#: layouts, every row; docs/speed.md): channels-last (oneDNN's blocked convolutions) is
-#: 1.2-2x faster on an Intel Xeon with AMX; NCHW was faster on an AMD EPYC (Zen 4). Chosen
-#: by vendor, not by a start-up timing, so that a trial's numbers (the layout changes the
-#: order of floating-point sums) do not depend on a noisy measurement.
-CONV_LAYOUTS = {"GenuineIntel": "channels_last", "AuthenticAMD": "nchw"}
+#: layouts, every row, quiet machine; docs/speed.md): channels-last (oneDNN's blocked
+#: convolutions) is faster in every row on an Intel Xeon with AMX (1.1-2x) and on an AMD
+#: EPYC Zen 4 (1.1-1.7x). Chosen by vendor, not by a start-up timing, so that a trial's
+#: numbers (the layout changes the order of floating-point sums) do not depend on a noisy
+#: measurement; a vendor not measured keeps PyTorch's default.
+CONV_LAYOUTS = {"GenuineIntel": "channels_last", "AuthenticAMD": "channels_last"}
 
 
 def cpu_fields(cpuinfo: str) -> dict[str, str]:

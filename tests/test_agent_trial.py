@@ -179,7 +179,12 @@ def test_the_machine_is_described_by_what_its_kernels_depend_on() -> None:
 
 @pytest.mark.parametrize(
     ("vendor", "layout"),
-    [("GenuineIntel", "channels_last"), ("AuthenticAMD", "nchw"), ("ARM", "nchw"), ("", "nchw")],
+    [
+        ("GenuineIntel", "channels_last"),
+        ("AuthenticAMD", "channels_last"),
+        ("ARM", "nchw"),
+        ("", "nchw"),
+    ],
 )
 def test_the_conv_layout_follows_the_cpu_vendor(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, vendor: str, layout: str

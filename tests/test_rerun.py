@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from sweeper.run.cli_rerun import first_difference, machine_lines
+from sweeper.run.cli_rerun import first_difference, machine_lines, recorded_layout
 
 CURVE = {"step": [0, 100], "success_rate": [0.0, 0.5], "final_distance": [0.3, math.nan]}
 HERE = {"cpu": "AuthenticAMD 26 2", "cpu_name": "AMD EPYC", "kernels": "AVX512", "torch": "2",
@@ -47,3 +47,11 @@ def test_the_machines_say_whether_the_same_curve_is_to_be_expected():
     assert machine_lines([{"from_step": 0, **older}], nchw)[-1].startswith("another machine")
     unknown = machine_lines(None, HERE)
     assert unknown[0].startswith("recorded on: not recorded")
+
+
+def test_a_rerun_takes_the_layout_of_the_trial_s_first_recorded_run():
+    nchw = {"from_step": 0, **HERE, "conv_layout": "nchw"}
+    assert recorded_layout([nchw, {"from_step": 5000, **HERE}]) == "nchw"
+    older = {"from_step": 0, **{k: v for k, v in HERE.items() if k != "conv_layout"}}
+    assert recorded_layout([older]) == "channels_last"  # before layouts were recorded
+    assert recorded_layout(None) == "channels_last"  # before machines were recorded

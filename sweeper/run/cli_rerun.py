@@ -8,7 +8,8 @@ metric at every evaluation step is compared with the recorded curve as floats, n
 tolerance. A trial is bit-exact on the machine it ran on, not across machines (PyTorch's
 CPU kernels round differently by vendor and instruction set: ``agent.machine``), so the
 machines each run of the trial was recorded on are shown beside this one: a difference on
-another machine is expected, on the same machine it is a bug.
+another machine is expected, on the same machine it is a bug. The convolutions run in the
+layout the trial's record names, whatever this CPU would choose (``agent.machine.conv_layout``).
 
 With ``--restore-videos`` the trial films its videos again, and where its curve is the
 recorded one exactly (so its episodes are the recorded ones), each video the trial's
@@ -25,6 +26,7 @@ import argparse
 import dataclasses
 import difflib
 import math
+import os
 import sys
 import time
 from typing import TYPE_CHECKING, Any
@@ -78,6 +80,16 @@ def first_difference(recorded: dict[str, list[float]], rerun: dict[str, list[flo
     return None
 
 
+#: the conv layout of a record from before it was recorded: all code ran channels-last then
+OLDER_LAYOUT = "channels_last"
+
+
+def recorded_layout(recorded: list[dict[str, Any]] | None) -> str:
+    """The conv layout the trial's first recorded run used (``OLDER_LAYOUT`` for a run or
+    trial recorded before layouts were): the one a re-run must use to repeat its sums."""
+    return (recorded or [{}])[0].get("conv_layout", OLDER_LAYOUT)
+
+
 def machine_lines(recorded: list[dict[str, Any]] | None, here: dict[str, Any]) -> list[str]:
     """The machines the trial's runs were recorded on, this one, and what follows."""
     recorded = recorded or []
@@ -88,8 +100,7 @@ def machine_lines(recorded: list[dict[str, Any]] | None, here: dict[str, Any]) -
         lines.append(f"the runs before step {recorded[0]['from_step']} were not recorded")
     lines.append(f"this machine: {describe(here)}")
     whole = bool(recorded) and recorded[0]["from_step"] == 0
-    # a record from before conv_layout was recorded ran channels-last, as all code did then
-    was = [{"conv_layout": "channels_last", **m} for m in recorded]
+    was = [{"conv_layout": OLDER_LAYOUT, **m} for m in recorded]
     if whole and all({k: v for k, v in m.items() if k != "from_step"} == here for m in was):
         lines.append("the same machine: the curve should be the recorded one")
     else:
@@ -125,6 +136,7 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     import torch
 
     import agent
+    from agent.machine import LAYOUT_VARIABLE
     from agent.machine import describe as this_machine
     from encoders.torch_base import resolve_device
 
@@ -137,9 +149,12 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
         stop_at=last if last < config.total_steps else None,  # a trial halving stopped
     )
     videos: dict[str, bytes] = {}
+    machines = trial_attr(trial, "machines")
+    # the recorded layout, not this CPU's choice: the layout orders the convolutions' sums
+    os.environ[LAYOUT_VARIABLE] = recorded_layout(machines)
     here = this_machine(resolve_device(config.device))
     print(f"study {spec.study!r} in {redact(spec.storage_url)}: {args.key} (trial {trial.number})")
-    print("\n".join(machine_lines(trial_attr(trial, "machines"), here)))
+    print("\n".join(machine_lines(machines, here)))
     print(f"re-running {config.total_steps if last == config.total_steps else last} env steps "
           f"of {config.method} on {config.env} ...", flush=True)  # fmt: skip
     start = time.perf_counter()
