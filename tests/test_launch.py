@@ -116,7 +116,9 @@ def test_launch_ci_end_to_end_then_status_then_a_relaunch_reruns_nothing(
     # anyone can re-run a recorded trial from its plan entry: here, the same curve exactly
     monkeypatch.undo()  # Ray's absence was the relaunch's check; rerun starts none anyway
     monkeypatch.chdir(tmp_path)
+    layout = os.environ.get("GCRL_CONV_LAYOUT")
     assert cli.main(["rerun", str(CI_SPEC), "pixel/0/0"]) == 0
+    assert os.environ.get("GCRL_CONV_LAYOUT") == layout  # the recorded layout only for the run
     out = capsys.readouterr().out
     assert "the same machine: the curve should be the recorded one" in out
     assert "the same curve: every metric at all 4 steps is the recorded float" in out

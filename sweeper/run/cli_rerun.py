@@ -30,6 +30,7 @@ import os
 import sys
 import time
 from typing import TYPE_CHECKING, Any
+from unittest import mock
 
 from sweeper.plan import CONFIRM, PlanEntry, build_plan, confirm_plan
 from sweeper.spec import plural
@@ -151,8 +152,9 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     videos: dict[str, bytes] = {}
     machines = trial_attr(trial, "machines")
     # the recorded layout, not this CPU's choice: the layout orders the convolutions' sums
-    os.environ[LAYOUT_VARIABLE] = recorded_layout(machines)
-    here = this_machine(resolve_device(config.device))
+    layout = {LAYOUT_VARIABLE: recorded_layout(machines)}
+    with mock.patch.dict(os.environ, layout):
+        here = this_machine(resolve_device(config.device))
     print(f"study {spec.study!r} in {redact(spec.storage_url)}: {args.key} (trial {trial.number})")
     print("\n".join(machine_lines(machines, here)))
     print(f"re-running {config.total_steps if last == config.total_steps else last} env steps "
@@ -169,8 +171,10 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
         )
 
     torch.set_num_threads(config.threads)
+    film = videos.__setitem__ if args.restore_videos else None
     try:
-        result = agent.train(config, report, videos.__setitem__ if args.restore_videos else None)
+        with mock.patch.dict(os.environ, layout):
+            result = agent.train(config, report, film)
     except (ValueError, OSError) as e:  # e.g. vgg's weights file is not on this machine
         print(f"sweeper rerun: {args.key} cannot run here: {e}", file=sys.stderr)
         return 2
