@@ -152,9 +152,8 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     videos: dict[str, bytes] = {}
     machines = trial_attr(trial, "machines")
     # the recorded layout, not this CPU's choice: the layout orders the convolutions' sums
-    layout = {LAYOUT_VARIABLE: recorded_layout(machines)}
-    with mock.patch.dict(os.environ, layout):
-        here = this_machine(resolve_device(config.device))
+    layout = recorded_layout(machines)
+    here = {**this_machine(resolve_device(config.device)), "conv_layout": layout}
     print(f"study {spec.study!r} in {redact(spec.storage_url)}: {args.key} (trial {trial.number})")
     print("\n".join(machine_lines(machines, here)))
     print(f"re-running {config.total_steps if last == config.total_steps else last} env steps "
@@ -173,7 +172,7 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     torch.set_num_threads(config.threads)
     film = videos.__setitem__ if args.restore_videos else None
     try:
-        with mock.patch.dict(os.environ, layout):
+        with mock.patch.dict(os.environ, {LAYOUT_VARIABLE: layout}):
             result = agent.train(config, report, film)
     except (ValueError, OSError) as e:  # e.g. vgg's weights file is not on this machine
         print(f"sweeper rerun: {args.key} cannot run here: {e}", file=sys.stderr)
