@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
+import sqlite3
 import sys
 import time
 import uuid
@@ -159,6 +161,17 @@ def test_launch_ci_end_to_end_then_status_then_a_relaunch_reruns_nothing(
     assert lost.read_bytes() == original
     assert cli.main(["rerun", str(CI_SPEC), "pixel/0/0", *pub_url, "--restore-videos"]) == 0
     assert f"video {meta['filename']}: present" in capsys.readouterr().out
+    # a record this run cannot repeat: it stops at the first evaluation that differs
+    curve = curve_of(pixel)
+    curve["final_distance"][0] += 1e-7
+    with sqlite3.connect(pub / "study.db") as db:
+        db.execute("UPDATE trial_system_attributes SET value_json = ? WHERE key = ? AND "
+                   "trial_id = ?", (json.dumps(curve), CURVE_ATTR, pixel._trial_id))  # fmt: skip
+    lost.unlink()
+    assert cli.main(["rerun", str(CI_SPEC), "pixel/0/0", *pub_url, "--restore-videos"]) == 1
+    out = capsys.readouterr().out
+    assert out.count("  step ") == 1 and "another curve from here: step 0, final_distance" in out
+    assert "stopped there" in out and not lost.exists()
     capsys.readouterr()
     assert cli.main(["publish", str(CI_SPEC), "--out", "runs/ci"]) == 2  # onto itself
     assert cli.main(["publish", str(CI_SPEC), "--storage", "postgresql://u@127.0.0.1/x"]) == 2

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from sweeper.run.cli_rerun import first_difference, machine_lines, recorded_layout
+from sweeper.run.cli_rerun import difference_at, first_difference, machine_lines, recorded_layout
 
 CURVE = {"step": [0, 100], "success_rate": [0.0, 0.5], "final_distance": [0.3, math.nan]}
 HERE = {"cpu": "AuthenticAMD 26 2", "cpu_name": "AMD EPYC", "kernels": "AVX512", "torch": "2",
@@ -25,6 +25,14 @@ def test_curves_are_compared_float_for_float_nan_equal_to_nan():
     assert first_difference(CURVE, missing) == "no final_distance (recorded: 0.3)"
     # a metric the record does not hold (a newer agent's) is not compared
     assert first_difference(CURVE, {**CURVE, "new": [1.0, 1.0]}) is None
+
+
+def test_one_evaluation_is_compared_with_the_recorded_one_at_its_step():
+    assert difference_at(CURVE, 100, {"success_rate": 0.5, "final_distance": math.nan}) is None
+    assert difference_at(CURVE, 0, {"success_rate": 0.0, "final_distance": 0.31}) == (
+        "step 0, final_distance: 0.31 (recorded: 0.3)"
+    )
+    assert "does not hold" in difference_at(CURVE, 50, {"success_rate": 0.0})
 
 
 def test_the_machines_say_whether_the_same_curve_is_to_be_expected():

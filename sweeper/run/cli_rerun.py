@@ -15,7 +15,9 @@ With ``--restore-videos`` the trial films its videos again, and where its curve 
 recorded one exactly (so its episodes are the recorded ones), each video the trial's
 record names but the study's artifact store lacks is written there under its recorded id:
 a published study whose video files were lost gets them back without a change to its
-database. On another machine the curve differs and nothing is written.
+database. On another machine the curve differs and nothing is written: the run stops at
+the first evaluation that differs (a trial costs up to hours, and the videos can only come
+from a run that repeats it), where without ``--restore-videos`` it runs on to show the curve.
 
 Exit codes: 0 the same curve, 1 another curve, 2 the study, key or trial cannot be used.
 """
@@ -79,6 +81,24 @@ def first_difference(recorded: dict[str, list[float]], rerun: dict[str, list[flo
             if got != want and not (math.isnan(got) and math.isnan(want)):
                 return f"step {step}, {metric}: {got!r} (recorded: {want!r})"
     return None
+
+
+def difference_at(
+    recorded: dict[str, list[float]], step: int, metrics: dict[str, float]
+) -> str | None:
+    """Where one evaluation (``step``, its ``metrics``) differs from the recorded curve's
+    at that step, in words (``first_difference``'s), or None when it is the same."""
+    if step not in recorded["step"]:
+        return f"evaluation step {step}, which the record does not hold"
+    index = recorded["step"].index(step)
+    return first_difference(
+        {metric: [values[index]] for metric, values in recorded.items()},
+        {"step": [step], **{metric: [value] for metric, value in metrics.items()}},
+    )
+
+
+class _AnotherCurve(Exception):
+    """Raised by the report at the first difference when the run can restore nothing."""
 
 
 #: the conv layout of a record from before it was recorded: all code ran channels-last then
@@ -160,6 +180,8 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
           f"of {config.method} on {config.env} ...", flush=True)  # fmt: skip
     start = time.perf_counter()
 
+    differences: list[str] = []
+
     def report(step: int, metrics: dict[str, float]) -> None:
         index = recorded["step"].index(step) if step in recorded["step"] else None
         want = recorded["success_rate"][index] if index is not None else float("nan")
@@ -168,12 +190,22 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
             f"{time.perf_counter() - start:.0f} s",
             flush=True,
         )
+        difference = None if differences else difference_at(recorded, step, metrics)
+        if difference is not None:
+            differences.append(difference)
+            print(f"  another curve from here: {difference}", flush=True)
+            if args.restore_videos:
+                raise _AnotherCurve(difference)
 
     torch.set_num_threads(config.threads)
     film = videos.__setitem__ if args.restore_videos else None
     try:
         with mock.patch.dict(os.environ, {LAYOUT_VARIABLE: layout}):
             result = agent.train(config, report, film)
+    except _AnotherCurve as e:
+        print(f"another curve: first difference at {e}\nstopped there: this run's episodes "
+              "are not the recorded ones, so no video can be restored from them")  # fmt: skip
+        return 1
     except (ValueError, OSError) as e:  # e.g. vgg's weights file is not on this machine
         print(f"sweeper rerun: {args.key} cannot run here: {e}", file=sys.stderr)
         return 2
