@@ -20,8 +20,17 @@ from sweeper.plan._entries import build_plan
 from sweeper.results.cli_aggregate import load_study_frame
 from sweeper.results.cli_status import status_lines
 from sweeper.spec._models import load_spec
-from sweeper.storage import CURVE_ATTR, StorageError, StudyBusy, StudyStore, curve_of, open_storage
+from sweeper.storage import (
+    CURVE_ATTR,
+    StorageError,
+    StudyBusy,
+    StudyStore,
+    curve_of,
+    open_storage,
+    trial_attr,
+)
 from sweeper.storage._artifacts import ArtifactStore, trial_artifacts, upload_once
+from sweeper.storage._attrs import shown
 from sweeper.storage._open import open_study
 from sweeper.storage._params import FIXED_PARAMS_ATTR, METHOD_PARAM
 
@@ -29,14 +38,19 @@ optuna.logging.set_verbosity(optuna.logging.WARNING)
 CURVE = {"step": [0, 100, 200, 300], "success_rate": [0.0, 0.5, 1.0, 1.0],
          "final_distance": [1.0, 0.5, 0.25, 0.0]}  # fmt: skip
 
+MACHINE = {"from_step": 0, "cpu": "AuthenticAMD 26 2", "cpu_name": "AMD EPYC", "kernels": "AVX512",
+           "torch": "2.13.0+cpu"}  # fmt: skip
+OLD_ATTRS = {CURVE_ATTR: CURVE, "worker": {"node": "n1", "pid": 7}, "machines": [MACHINE],
+             "videos": {"episode-step300.mp4": "0568e6a1"}}  # fmt: skip
+
 
 def old_study(
     spec_path: Path, relaunched: bool = False, videos: ArtifactStore | None = None
 ) -> StudyStore:
     """The CI study as the writer recorded it before: every param registered, no ``method``
-    param, each curve a user attr, both keys done. ``relaunched``: linear/0/0 failed then,
-    and a relaunch with today's writer re-ran it (a study of both formats, and
-    ``fixed_params``). ``videos``: each trial's video stored there."""
+    param, each curve, worker, machines and video map a user attr, both keys done.
+    ``relaunched``: linear/0/0 failed then, and a relaunch with today's writer re-ran it (a
+    study of both formats, and ``fixed_params``). ``videos``: each trial's video stored there."""
     spec = load_spec(spec_path)
     plan = build_plan(spec)
     attrs = {"plan_hash": plan.hash, "plan": plan.keys()}
@@ -50,7 +64,8 @@ def old_study(
     for trial in store.trials():
         store.start(trial._trial_id)
         store.report(trial._trial_id, dict(zip(CURVE["step"], CURVE["success_rate"], strict=True)))
-        store.storage.set_trial_user_attr(trial._trial_id, CURVE_ATTR, CURVE)  # the old place
+        for key, value in OLD_ATTRS.items():  # the old place: raw JSON on the trial's page
+            store.storage.set_trial_user_attr(trial._trial_id, key, value)
         if videos is not None:
             upload_once(store.storage, trial._trial_id, "episode-step300.mp4", b"mp4", videos)
         if relaunched and trial.user_attrs["method"] == "linear":
@@ -66,12 +81,13 @@ def old_study(
 
 def readers_view(spec_path: Path):
     """What the readers get: the aggregation's frame, ``sweeper status``' lines, and every
-    trial's state, value, intermediate values, curve and other user attrs."""
+    trial's state, value, intermediate values, curve and other attrs as ``trial_attr`` reads
+    them."""
     spec = load_spec(spec_path)
     url = spec.storage_url
     with open_study(url, "ci", write=False) as store:
         trials = [(t.number, t.state, t.value, t.intermediate_values, curve_of(t),
-                   {k: v for k, v in t.user_attrs.items() if k != CURVE_ATTR})
+                   {k: trial_attr(t, k) for k in t.user_attrs if k != CURVE_ATTR})
                   for t in store.trials()]  # fmt: skip
         status = status_lines(spec, store)
     return load_study_frame(url, "ci"), status, trials
@@ -84,7 +100,7 @@ def test_upgrade_rewrites_old_trials_and_readers_get_the_same_study(tmp_path, re
     frame, status, trials = readers_view(spec)
 
     done = store.upgrade()
-    assert (done.params, done.curves) == (2, 2)  # the failed linear trial's curve included
+    assert (done.params, done.curves, done.values) == (2, 2, 2)  # the failed linear trial's too
     after_frame, after_status, after_trials = readers_view(spec)
     pd.testing.assert_frame_equal(after_frame, frame)
     assert after_frame.to_csv() == frame.to_csv()
@@ -96,9 +112,14 @@ def test_upgrade_rewrites_old_trials_and_readers_get_the_same_study(tmp_path, re
         assert trial.params["method"] == trial.user_attrs["method"]
         assert set(trial.params) == {"lr", METHOD_PARAM}  # the CI spec varies lr alone
         assert CURVE_ATTR not in trial.user_attrs and trial.system_attrs[CURVE_ATTR] == CURVE
+        if trial.number < 2:  # an old trial's values: system attrs, the page's in words
+            for key in ("worker", "machines", "videos"):
+                assert trial.system_attrs[key] == OLD_ATTRS[key]
+                assert trial.user_attrs[key] == shown(key, OLD_ATTRS[key])
+            assert trial.user_attrs["machines"].startswith("from step 0: AMD EPYC (Auth")
     assert len({str(t.distributions[METHOD_PARAM]) for t in store.trials()}) == 1
     again = store.upgrade()
-    assert (again.params, again.curves) == (0, 0)  # nothing left to rewrite
+    assert (again.params, again.curves, again.values) == (0, 0, 0)  # nothing left to rewrite
     assert readers_view(spec)[2] == trials
 
 
@@ -139,7 +160,8 @@ def test_publish_upgrades_its_copy_and_names_each_missing_video(tmp_path, monkey
     line = (f"trial {number} (linear/0/0): its video episode-step300.mp4 is missing "
             f"(artifacts/{ids['linear/0/0']})")  # fmt: skip
     assert f"sweeper publish: {line}\n" in err and err.count("sweeper publish: ") == 1
-    assert "rewrote the copy's older records in today's format: the params of 2 trials" in out
+    assert ("today's format: the params of 2 trials, 2 curves, the worker, machines and videos "
+            "of 2 trials") in out  # fmt: skip
     assert line in (tmp_path / "pub" / "status.txt").read_text()
     assert (tmp_path / "pub" / "aggregate" / "auc_table.csv").is_file()  # published anyway
     published = optuna.load_study(study_name="ci", storage="sqlite:///pub/study.db")

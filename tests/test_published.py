@@ -50,3 +50,33 @@ def test_aggregating_a_published_study_again_gives_its_auc_table(
     assert any(line.startswith("Highest IQM AUC: ") for line in printed)
     assert f"  report:    {out / 'report.md'}" in printed
     assert f"  dashboard: sweeper dashboard {spec} --storage sqlite:///{database}" in printed
+
+
+@pytest.mark.parametrize("folder", PUBLISHED, ids=lambda p: p.name)
+def test_a_published_study_is_complete_and_in_today_s_format(folder: Path, tmp_path: Path):
+    """Every finished trial's video is in ``artifacts/``, and its record is today's: a
+    ``method`` param, no constant as a param, and no machine-readable value (the curve, the
+    worker, machines, videos) as a user attr, which the dashboard shows as raw JSON."""
+    import optuna
+    from optuna.distributions import CategoricalDistribution
+    from optuna.trial import TrialState
+
+    from sweeper.storage import artifacts_in
+    from sweeper.storage._attrs import SYSTEM_ATTRS
+
+    shutil.copy(folder / "study.db", tmp_path / "study.db")
+    (name,) = optuna.get_all_study_names(f"sqlite:///{tmp_path / 'study.db'}")
+    study = optuna.load_study(study_name=name, storage=f"sqlite:///{tmp_path / 'study.db'}")
+    finished = study.get_trials(states=(TrialState.COMPLETE, TrialState.PRUNED))
+    assert finished
+    for trial in finished:
+        key = trial.user_attrs["key"]
+        assert trial.params["method"] == trial.user_attrs["method"], key
+        constants = [name for name, d in trial.distributions.items()
+                     if isinstance(d, CategoricalDistribution) and len(d.choices) == 1]  # fmt: skip
+        assert not constants, f"{key}: constants as params {constants}"
+        raw = [k for k in SYSTEM_ATTRS & trial.user_attrs.keys()
+               if not isinstance(trial.user_attrs[k], str)]  # fmt: skip
+        assert not raw, f"{key}: raw JSON user attrs {raw}"
+        for meta in artifacts_in(trial.system_attrs):
+            assert (folder / "artifacts" / meta["artifact_id"]).is_file(), f"{key}: {meta}"

@@ -188,10 +188,11 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     except (ValueError, OSError, sqlite3.Error) as e:  # StorageError is a ValueError
         print(f"sweeper publish: {e}", file=sys.stderr)
         return 2
-    if upgraded.params or upgraded.curves:
+    if upgraded.params or upgraded.curves or upgraded.values:
         trials, curves = plural(upgraded.params, "trial"), plural(upgraded.curves, "curve")
         print(f"rewrote the copy's older records in today's format: the params of {trials}, "
-              f"{curves}")  # fmt: skip
+              f"{curves}, the worker, machines and videos of "
+              f"{plural(upgraded.values, 'trial')}")  # fmt: skip
     print(f"published study {spec.study!r} to {out}: study.db, status.txt, "
           f"{'artifacts/, ' if copied else ''}aggregate/ (report: {result.report})")  # fmt: skip
     if partial is not None:

@@ -3,13 +3,15 @@
 
 Today (``sweeper.storage._params``, ``sweeper.storage._writer``): a plan key's trial has as
 Optuna params the ones that vary and ``method``, the study's constants are kept once in
-the study attr ``fixed_params``, and its curve is a system attr (``CURVE_ATTR``). Before, a
-trial registered every param (a constant as a param of one choice) and no ``method``, and
-kept its curve as a user attr. Readers accept both; ``rewrite`` leaves one format, and
-nothing a reader gets changes: each trial's params with the constants that apply to it
-(as ``sweeper.results._frame`` reads them) are checked to be the same before and after,
-a curve moves as the same JSON text, and values, intermediate values, states and every
-other attr are not touched.
+the study attr ``fixed_params``, and its curve and other machine-readable values (the worker,
+machines, videos: ``SYSTEM_ATTRS``) are system attrs, each but the curve with a user attr in
+words beside it (``shown``: what the dashboard's trial page shows). Before, a trial
+registered every param (a constant as a param of one choice) and no ``method``, and kept
+those values as user attrs, which the page showed as raw JSON. Readers accept both
+(``trial_attr``); ``rewrite`` leaves one format, and nothing a reader gets changes: each
+trial's params with the constants that apply to it (as ``sweeper.results._frame`` reads
+them) are checked to be the same before and after, a value moves as the same JSON text,
+and values, intermediate values, states and every other attr are not touched.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from sweeper.storage._attrs import CURVE_ATTR as CURVE
+from sweeper.storage._attrs import SYSTEM_ATTRS, shown
 from sweeper.storage._errors import StorageError
 from sweeper.storage._params import METHOD_PARAM, applies_to, is_fixed, method_choices
 
@@ -33,6 +36,7 @@ class Upgrade:
 
     params: int  # trials whose constants went to ``fixed_params``, and that got ``method``
     curves: int  # trials whose curve went from a user attr to a system attr
+    values: int  # trials whose other ``SYSTEM_ATTRS`` did (a user attr in words left)
     fixed: dict[str, Any]  # the study's ``fixed_params`` after
 
 
@@ -53,13 +57,13 @@ def rewrite(
         TrialSystemAttributeModel,
         TrialUserAttributeModel,
     )
-    from sqlalchemy import delete, insert, select
+    from sqlalchemy import delete, insert, select, update
 
     trials, params = TrialModel.__table__, TrialParamModel.__table__
     users, systems = TrialUserAttributeModel.__table__, TrialSystemAttributeModel.__table__
     ours = select(trials.c.trial_id).where(trials.c.study_id == study_id)
-    attrs: dict[int, dict[str, str]] = {}  # trial id -> key, method and curve, as JSON text
-    wanted = users.c.key.in_(("key", "method", CURVE))
+    attrs: dict[int, dict[str, str]] = {}  # trial id -> key, method, system attrs: JSON text
+    wanted = users.c.key.in_(("key", "method", *SYSTEM_ATTRS))
     query = select(users.c.trial_id, users.c.key, users.c.value_json)
     for trial_id, key, text in connection.execute(query.where(users.c.trial_id.in_(ours), wanted)):
         attrs.setdefault(trial_id, {})[key] = text
@@ -119,12 +123,21 @@ def rewrite(
                       "param_value": methods.to_internal_repr(keyed[t]),
                       "distribution_json": text})  # fmt: skip
 
-    # the curves: the same JSON text, a system attr (a system attr wins where both are)
-    curves = [t for t, a in attrs.items() if CURVE in a]
-    system = select(systems.c.trial_id).where(systems.c.key == CURVE, systems.c.trial_id.in_(ours))
-    have = set(connection.execute(system).scalars())
-    moved = [{"trial_id": t, "key": CURVE, "value_json": attrs[t][CURVE]}
-             for t in curves if t not in have]  # fmt: skip
+    # the machine-readable values: the same JSON text, as system attrs (one already there
+    # wins: its user attr is the words), and the words as the user attr (none for a curve)
+    present = select(systems.c.trial_id, systems.c.key).where(
+        systems.c.key.in_(SYSTEM_ATTRS), systems.c.trial_id.in_(ours)
+    )
+    have = set(connection.execute(present).tuples())
+    old_values = [
+        (t, k)
+        for t, a in attrs.items()
+        for k in sorted(SYSTEM_ATTRS & a.keys())
+        if (t, k) not in have or k == CURVE
+    ]  # a user attr curve is never words
+    moved = [{"trial_id": t, "key": k, "value_json": attrs[t][k]} for t, k in old_values
+             if (t, k) not in have]  # fmt: skip
+    words = {(t, k): shown(k, json.loads(attrs[t][k])) for t, k in old_values}
 
     if dropped:
         connection.execute(delete(params).where(params.c.param_id.in_(dropped)))
@@ -132,10 +145,16 @@ def rewrite(
         connection.execute(insert(params), added)
     if moved:
         connection.execute(insert(systems), moved)
-    if curves:
-        gone = users.c.trial_id.in_(curves) & (users.c.key == CURVE)
-        connection.execute(delete(users).where(gone))
-    return Upgrade(params=len(old), curves=len(curves), fixed=dict(sorted(after.items())))
+    for (t, k), text in words.items():
+        where = (users.c.trial_id == t) & (users.c.key == k)
+        if text is None:
+            connection.execute(delete(users).where(where))
+        else:
+            connection.execute(update(users).where(where).values(value_json=json.dumps(text)))
+    curves = {t for t, k in old_values if k == CURVE}
+    values = {t for t, k in old_values if k != CURVE}
+    return Upgrade(params=len(old), curves=len(curves), values=len(values),
+                   fixed=dict(sorted(after.items())))  # fmt: skip
 
 
 def _read(own: Mapping[str, Any], fixed: Mapping[str, Any], method: str | None) -> str:
