@@ -63,6 +63,7 @@ def test_a_published_study_is_complete_and_in_today_s_format(folder: Path, tmp_p
 
     from sweeper.storage import artifacts_in
     from sweeper.storage._attrs import SYSTEM_ATTRS
+    from sweeper.storage._params import is_fixed
 
     shutil.copy(folder / "study.db", tmp_path / "study.db")
     (name,) = optuna.get_all_study_names(f"sqlite:///{tmp_path / 'study.db'}")
@@ -73,7 +74,7 @@ def test_a_published_study_is_complete_and_in_today_s_format(folder: Path, tmp_p
         key = trial.user_attrs["key"]
         assert trial.params["method"] == trial.user_attrs["method"], key
         constants = [name for name, d in trial.distributions.items()
-                     if isinstance(d, CategoricalDistribution) and len(d.choices) == 1]  # fmt: skip
+                     if isinstance(d, CategoricalDistribution) and is_fixed(d.choices)]  # fmt: skip
         assert not constants, f"{key}: constants as params {constants}"
         raw = [k for k in SYSTEM_ATTRS & trial.user_attrs.keys()
                if not isinstance(trial.user_attrs[k], str)]  # fmt: skip
