@@ -29,6 +29,7 @@ from agent.checkpoint import saved_step
 from agent.config import TrialResult
 from sweeper.plan._entries import build_plan
 from sweeper.run._launch import launch, prepare, study_attrs
+from sweeper.run._signals import raise_if_stopped, stop_on_signals
 from sweeper.storage import StudyStore, curve_of, open_storage, trial_attr
 from sweeper.storage._open import open_study
 
@@ -125,6 +126,24 @@ def start_driver(spec: Path, address: str, log: Path) -> subprocess.Popen:
         # ignored (a background job of a shell without job control), which a child inherits
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the point
+def test_a_ctrl_c_that_lands_in_a_finalizer_still_stops_the_launch():
+    # CI once lost a Ctrl-C this way: it arrived while SQLAlchemy ran a weakref callback,
+    # Python printed "Exception ignored" and the launch ran on to exit 0
+    class SignalsWhileFinalized:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.01)  # the handler runs here, inside the finalizer
+
+    with stop_on_signals():
+        raise_if_stopped()  # nothing asked yet
+        SignalsWhileFinalized()  # dropped at once: its __del__ swallows the KeyboardInterrupt
+        with pytest.raises(KeyboardInterrupt):
+            raise_if_stopped()
+    raise_if_stopped()  # forgotten once the launch is over
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def kill_group(process: subprocess.Popen, sig: int) -> None:

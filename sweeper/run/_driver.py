@@ -49,6 +49,7 @@ from sweeper.run._execution import (
     WorkersCannotStart,
 )
 from sweeper.run._progress import LaunchProgress
+from sweeper.run._signals import raise_if_stopped
 from sweeper.spec import StudySpec, plural
 from sweeper.storage import (
     ArtifactStore,
@@ -134,6 +135,7 @@ class Driver:
                 self.fill_idle_workers()
                 for event in self.pool.poll(timeout=1.0):
                     self.handle(event)
+                raise_if_stopped()  # a Ctrl-C whose exception Python dropped
                 self.beat.check()  # stops this driver if another one took the study over
                 self.progress.refresh()
             self.progress.refresh(force=True)

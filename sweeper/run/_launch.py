@@ -20,12 +20,10 @@ not to the progress display.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import os
-import signal
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any, TextIO
 
 import optuna
@@ -47,6 +45,7 @@ from sweeper.run import _random_agent as random_agent
 from sweeper.run._execution import WorkerPool, start_ray, stop_ray
 from sweeper.run._progress import LaunchProgress
 from sweeper.run._resources import cannot_reach_message, local_cpus, pool_size
+from sweeper.run._signals import Interrupted, stop_on_signals
 from sweeper.spec import StudySpec, load_spec, plural
 from sweeper.storage import (
     DONE_STATES,
@@ -117,30 +116,6 @@ def report_metric_names(env: str) -> tuple[str, ...]:
     return tuple(metric_key(name) for name in env_class(env).metric_names)
 
 
-class Interrupted(KeyboardInterrupt):
-    """SIGTERM, handled like Ctrl-C."""
-
-
-def _raise_interrupted(signum: int, frame: Any) -> None:
-    raise Interrupted()
-
-
-@contextlib.contextmanager
-def sigterm_stops() -> Iterator[None]:
-    """Inside the block SIGTERM raises ``Interrupted`` (a KeyboardInterrupt), so it stops a
-    launch as Ctrl-C does; the handler before it comes back after. Outside the main
-    thread, which alone receives signals, it changes nothing."""
-    try:
-        previous = signal.signal(signal.SIGTERM, _raise_interrupted)
-    except ValueError:  # not the main thread
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
 @dataclasses.dataclass
 class Launch:
     """One launch, what each of its steps reads: the spec, the plan (whole: its hash is the
@@ -183,11 +158,11 @@ def launch(
     (default: the search plan; ``sweeper confirm``: the confirmation stage); a StorageError
     from it exits 2. ``skip``: methods this launch leaves out (``sweeper launch
     --skip-missing``, ``--only``): their keys are synced like the others, so they stay left
-    in the ledger, and are not run; the plan, and its hash, stay whole. SIGTERM raises
-    ``Interrupted`` throughout.
+    in the ledger, and are not run; the plan, and its hash, stay whole. Ctrl-C and SIGTERM
+    raise ``Interrupted`` throughout.
     """
     run = Launch(spec, plan, skip, sys.stderr if stream is None else stream, stage, train)
-    with sigterm_stops():
+    with stop_on_signals():
         try:
             check_writable(spec.storage_url)
             study = read_study(spec, plan)

@@ -34,9 +34,10 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     # the stage loads the driver, Ray and Optuna: only when the command runs
     from sweeper.run._confirm import check_study, confirm, settings
     from sweeper.run._driver import EXIT_INTERRUPTED
-    from sweeper.run._launch import prepare, sigterm_stops
+    from sweeper.run._launch import prepare
+    from sweeper.run._signals import stop_on_signals
 
-    with sigterm_stops():
+    with stop_on_signals():
         try:
             try:
                 spec, plan = prepare(spec, address=args.address, max_concurrent=args.max_concurrent)

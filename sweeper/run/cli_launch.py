@@ -65,9 +65,10 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     """``sweeper launch``: returns the exit code."""
     # the driver loads Ray and Optuna: only when the command runs (`--help` stays light)
     from sweeper.run._driver import EXIT_INTERRUPTED
-    from sweeper.run._launch import launch, prepare, sigterm_stops
+    from sweeper.run._launch import launch, prepare
+    from sweeper.run._signals import stop_on_signals
 
-    with sigterm_stops():
+    with stop_on_signals():
         try:
             try:
                 spec, plan = prepare(spec, address=args.address, max_concurrent=args.max_concurrent)
