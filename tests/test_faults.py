@@ -137,13 +137,21 @@ def test_a_ctrl_c_that_lands_in_a_finalizer_still_stops_the_launch():
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(0.01)  # the handler runs here, inside the finalizer
 
-    with stop_on_signals():
-        raise_if_stopped()  # nothing asked yet
-        SignalsWhileFinalized()  # dropped at once: its __del__ swallows the KeyboardInterrupt
-        with pytest.raises(KeyboardInterrupt):
-            raise_if_stopped()
-    raise_if_stopped()  # forgotten once the launch is over
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal
+    try:
+        with stop_on_signals():
+            raise_if_stopped()  # nothing asked yet
+            SignalsWhileFinalized()  # dropped at once: __del__ swallows the KeyboardInterrupt
+            with pytest.raises(KeyboardInterrupt):
+                raise_if_stopped()
+        raise_if_stopped()  # forgotten once the launch is over
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        # started with SIGINT ignored (nohup ... & from a script), it stays ignored
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        with stop_on_signals():
+            assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def kill_group(process: subprocess.Popen, sig: int) -> None:

@@ -32,12 +32,15 @@ def raise_if_stopped() -> None:
 
 @contextlib.contextmanager
 def stop_on_signals() -> Iterator[None]:
-    """Inside the block SIGINT and SIGTERM raise ``Interrupted`` and are remembered; the
-    handlers before it come back after, and the outermost block forgets the signals.
-    Outside the main thread, which alone receives signals, it changes nothing."""
+    """Inside the block SIGINT (unless ignored) and SIGTERM raise ``Interrupted`` and are
+    remembered; the handlers before it come back after, and the outermost block forgets
+    the signals. Outside the main thread, which alone receives signals, it changes nothing."""
     global _depth
+    # a process started with SIGINT ignored (``nohup cmd &`` from a script) keeps ignoring it
+    ignored = signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    caught = [signal.SIGTERM] if ignored else [signal.SIGINT, signal.SIGTERM]
     try:
-        previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+        previous = {sig: signal.signal(sig, _interrupt) for sig in caught}
     except ValueError:  # not the main thread
         yield
         return
