@@ -1,7 +1,7 @@
 """The thesis' FetchReach claims judged on a study the sweep made (the README's table).
 
     .venv/bin/python benchmarks/thesis_result.py [--storage URL] [--study NAME]
-        [--budget-storage URL] [--budget-study NAME]
+        [--budget NAME=URL ...]
 
 Default: the published study, ``docs/studies/fetch_reach_cpu/study.db``. Prints a Markdown
 table, per method: done of planned trials, IQM AUC with its 95 % interval, the IQM of the
@@ -19,12 +19,14 @@ Every statistic comes from ``sweeper aggregate``'s own tables (the same seed), s
 figures match the study's ``auc_table.csv`` and ``improvement.csv``. A claim resting on
 fewer than 5 trials or pairs says so.
 
-With the budget study (``studies/fetch_reach_budget.yaml``; default its published database,
-``docs/studies/fetch_reach_budget/study.db``, which may not exist yet: then one line says
-so), the two "solves" claims are judged at every gradient budget the studies ran, joined as
-``sweeper aggregate`` joins them (``sweeper.results._budget``: the same configurations and
-seeds), each with its condition: "PIXEL solves FetchReach: holds at 1/4 of A.1's gradient
-samples, 15k steps, 4 trials". The rule (``solved_at``) is printed with them.
+With the budget studies (default the published databases of
+``studies/fetch_reach_budget.yaml`` and of its follow-up on more seeds,
+``studies/fetch_reach_budget_seeds.yaml``; one not published yet is said in one line), the
+two "solves" claims are judged at every gradient budget the studies ran, joined as
+``sweeper aggregate`` joins them (``sweeper.results._budget``: the same configurations,
+every seed a setting ran), each with its condition: "PIXEL solves FetchReach: holds at 1/4
+of A.1's gradient samples, 15k steps, 4 trials". The rule (``solved_at``) is printed with
+them.
 """
 
 from __future__ import annotations
@@ -41,8 +43,12 @@ sys.path.insert(0, str(ROOT))
 SOLVED = 0.8
 #: the published study
 STORAGE = f"sqlite:///{ROOT / 'docs' / 'studies' / 'fetch_reach_cpu' / 'study.db'}"
-#: the budget study's published database (absent until it is published)
-BUDGET_STORAGE = f"sqlite:///{ROOT / 'docs' / 'studies' / 'fetch_reach_budget' / 'study.db'}"
+#: the budget studies (the ladder, then its follow-up on more seeds) and their published
+#: databases (absent until published)
+BUDGET_STUDIES = tuple(
+    (name, f"sqlite:///{ROOT / 'docs' / 'studies' / name / 'study.db'}")
+    for name in ("fetch_reach_budget", "fetch_reach_budget_seeds")
+)
 #: the encoders whose "solves FetchReach" the thesis claims
 SOLVERS = ("pixel", "conv")
 
@@ -88,35 +94,49 @@ def sqlite_file(url: str) -> Path | None:
     return Path(url[len(prefix) :]) if url.startswith(prefix) else None
 
 
-def budget_claims(frame, storage: str, study: str, seed: int = 0) -> list[str]:
-    """The "solves" claims at every setting of the budget join of ``frame`` (the
-    published study, read) with ``study`` at ``storage``; one line when that study
-    cannot be read."""
+def study_and_storage(text: str) -> tuple[str, str]:
+    """``NAME=URL`` as (NAME, URL); anything else is a usage error."""
+    name, equals, url = text.partition("=")
+    if not (name and equals and url):
+        raise argparse.ArgumentTypeError(f"expected NAME=URL, got {text!r}")
+    return name, url
+
+
+def budget_claims(frame, budgets: Sequence[tuple[str, str]], seed: int = 0) -> list[str]:
+    """The "solves" claims at every setting of the budget join of ``frame`` (the published
+    study, read) with the ``budgets`` (``(study, storage)``: the ladder, then follow-ups);
+    one line for each that cannot be read (the ladder: then no claim)."""
     from sweeper.results._budget import budget_table, join_studies, study_trials
     from sweeper.results._frame import load_study_frame, random_success, stage_frame, study_info
     from sweeper.results._report import MIN_RELIABLE, _fmt
 
-    path = sqlite_file(storage)
-    if path is not None and not path.is_file():
-        shown = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
-        return [
-            f"No budget study: {shown} does not exist (studies/fetch_reach_budget.yaml, not "
-            "published yet), so the claims above are judged at 1/16 of A.1's gradient "
-            "samples only."
-        ]
-    try:
-        budget = stage_frame(load_study_frame(storage, study), "search")
-    except ValueError as e:
-        return [f"No budget study: {e}"]
-    name = study_info(frame).name
-    join = join_studies(
-        [study_trials(name, stage_frame(frame, "search")), study_trials(study, budget)]
-    )
+    studies, missing = [study_trials(study_info(frame).name, stage_frame(frame, "search"))], []
+    for index, (study, storage) in enumerate(budgets):
+        path = sqlite_file(storage)
+        if path is not None and not path.is_file():
+            shown = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
+            problem = f"{shown} does not exist (studies/{study}.yaml, not published yet)"
+        else:
+            try:
+                budget = stage_frame(load_study_frame(storage, study), "search")
+            except ValueError as e:
+                problem = str(e)
+            else:
+                studies.append(study_trials(study, budget))
+                continue
+        if index == 0:
+            return [
+                f"No budget study: {problem}, so the claims above are judged at 1/16 of "
+                "A.1's gradient samples only."
+            ]
+        missing.append(f"{study} is not joined: {problem}.")
+    join = join_studies(studies)
     table = budget_table(join, seed=seed)
     random = random_success(frame)
     lines = [
         f"Each claim at each gradient budget ({' + '.join(join.studies)}). {rule_text(random)}"
     ]
+    lines += missing
     for left, problems in join.left_out.items():
         lines.append(f"{left} is left out: its configurations differ ({'; '.join(problems)}).")
     for encoder in SOLVERS:
@@ -165,8 +185,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--storage", default=STORAGE)
     parser.add_argument("--study", default="fetch_reach_cpu")
-    parser.add_argument("--budget-storage", default=BUDGET_STORAGE)
-    parser.add_argument("--budget-study", default="fetch_reach_budget")
+    parser.add_argument(
+        "--budget",
+        action="append",
+        type=study_and_storage,
+        metavar="NAME=URL",
+        help="a budget study and its storage (repeat: the ladder first, then follow-ups); "
+        "default the published fetch_reach_budget and fetch_reach_budget_seeds",
+    )
     args = parser.parse_args(argv)
 
     frame = load_study_frame(args.storage, args.study)
@@ -237,7 +263,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     learning_free = [(m, "vae") for m in ("pixel", "linear", "conv")]
     print(f"- VAE below the learning-free methods: {ahead(learning_free)}")
     print()
-    print("\n".join(budget_claims(frame, args.budget_storage, args.budget_study, seed)))
+    print("\n".join(budget_claims(frame, args.budget or BUDGET_STUDIES, seed)))
 
 
 if __name__ == "__main__":

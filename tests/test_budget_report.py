@@ -82,6 +82,12 @@ def frames(tmp_path_factory):
         | {"execution": budget.execution.model_dump(mode="json") | {"cpus_per_trial": 2}}
     )
     shifted = parse_spec(budget.model_dump(mode="json") | {"study": "shifted", "seed": 1})
+    more_seeds = spec_like(  # a follow-up on new seeds for two of pixel's settings
+        "studies/fetch_reach_budget.yaml",
+        study="more_seeds",
+        methods={"pixel": {}, "pixel_b128": methods["pixel_b128"]},
+        seeds=[2, 3],
+    )
     bf16 = spec_like(
         "studies/fetch_reach_cpu.yaml",
         study="bf16",
@@ -96,9 +102,10 @@ def frames(tmp_path_factory):
     skip = frozenset({"pixel_b128/1/1"})  # not done yet: n counts done trials
     write_planned_study(url, budget, final_success=final_success, seconds=3600.0, skip=skip)
     write_planned_study(url, shifted, final_success=final_success)
+    write_planned_study(url, more_seeds, final_success=final_success, seconds=3600.0)
     return {
         name: stage_frame(load_study_frame(url, name), "search")
-        for name in ("cpu", "budget", "shifted", "bf16")
+        for name in ("cpu", "budget", "shifted", "bf16", "more_seeds")
     }
 
 
@@ -130,12 +137,12 @@ def test_settings_come_from_the_trials_values(joined):
     assert table.loc[("pixel", "1/4"), "methods"] == "budget: pixel_b128"
 
 
-def test_the_join_keeps_the_pairs_every_study_with_the_encoder_planned(joined):
+def test_the_join_keeps_the_configurations_every_setting_of_the_encoder_planned(joined):
     join, _ = joined
     both = {(c, s) for c in (0, 1) for s in (0, 1)}
     assert join.pairs["pixel"] == join.pairs["conv"] == both
     assert join.pairs["linear"] == {(c, s) for c in (0, 1, 2) for s in (0, 1)}  # cpu alone
-    assert join.pairs["state"] == both  # the controls: what every joined study planned
+    assert join.pairs["state"] == both  # the controls: where every encoder is compared
     trials = join.trials
     assert set(trials.loc[trials["method"] == "pixel", "config_id"]) == {0, 1}
     assert set(trials.loc[trials["method"] == "linear", "config_id"]) == {0, 1, 2}
@@ -143,6 +150,29 @@ def test_the_join_keeps_the_pairs_every_study_with_the_encoder_planned(joined):
     assert controls.loc["state", "n"] == 4
     assert controls.loc["state", "final_success_iqm"] == pytest.approx(
         iqm([final_success(f"state/{c}/{s}") for c, s in sorted(both)])
+    )
+
+
+def test_a_study_on_new_seeds_adds_trials_to_the_settings_it_runs(frames):
+    names = ("cpu", "budget", "more_seeds")
+    join = join_studies([study_trials(n, frames[n]) for n in names])
+    assert not join.left_out
+    assert join.pairs["pixel"] == {(c, s) for c in (0, 1) for s in (0, 1, 2, 3)}
+    assert join.pairs["conv"] == {(c, s) for c in (0, 1) for s in (0, 1)}  # no new seeds
+    assert join.pairs["state"] == {(c, s) for c in (0, 1) for s in (0, 1)}  # cpu's own
+    table = budget_table(join).set_index(["encoder", "setting"])
+    # cpu's 4 and the follow-up's 4; budget's 3 done and 4; budget's 4 alone
+    assert table.loc[("pixel", "1/16"), "n"] == 8
+    assert table.loc[("pixel", "1/16"), "methods"] == "cpu: pixel, more_seeds: pixel"
+    assert table.loc[("pixel", "1/4"), "n"] == 7
+    assert table.loc[("pixel", "1/2"), "n"] == 4
+    assert table.loc[("conv", "1/16"), "n"] == 4
+    # paired on the (config, seed) both settings have done
+    assert table.loc[("pixel", "1/4"), "pairs"] == 7
+    assert table.loc[("pixel", "1/2"), "pairs"] == 3  # against 1/4, whose 1/1 is not done
+    done = [(c, s) for c in (0, 1) for s in range(4) if (c, s) != (1, 1)]  # 1/1: skipped
+    assert table.loc[("pixel", "1/4"), "final_success_iqm"] == pytest.approx(
+        iqm([final_success(f"pixel_b128/{c}/{s}") for c, s in done])
     )
 
 

@@ -208,6 +208,8 @@ def test_pinned_hashes_of_the_shipped_specs():
     assert cpu.hash == "1eb028c93daac2f4c3f53562124d592c64add2a8359c79fd4d255b827451a5c7"
     budget = build_plan(load_spec(ROOT / "studies" / "fetch_reach_budget.yaml"))
     assert budget.hash == "6473b5dd99e4566b1d71fd9022a60ec029626e4f74983baf5b20156931aba9a1"
+    seeds = build_plan(load_spec(ROOT / "studies" / "fetch_reach_budget_seeds.yaml"))
+    assert seeds.hash == "a29f526814456aab2fe9673407ff0828403567ab53efce07d76c8b45b9f12c4e"
 
 
 def test_precision_bf16_is_part_of_the_plan_and_fp32_keeps_the_hash_of_before():
@@ -254,6 +256,18 @@ def test_a_method_fixes_sac_fields_and_stays_paired_with_every_study_of_its_spac
                 assert entry.params[name] == value
         assert entry.trial_config.encoder_params == old.trial_config.encoder_params
         assert entry.trial_config.seed == old.trial_config.seed
+    # the follow-up on seeds 2 and 3 runs each of those trials' twins: configuration i is
+    # the same SAC values and encoder options, only the seed differs
+    seeds = build_plan(load_spec(ROOT / "studies" / "fetch_reach_budget_seeds.yaml"))
+    twins = {(e.method, e.config_id): e for e in budget.entries}
+    twins |= {(e.method, e.config_id): e for e in cpu.entries if e.method in ("pixel", "conv")}
+    assert len(seeds.entries) == 32 and {e.seed for e in seeds.entries} == {2, 3}
+    for entry in seeds.entries:
+        twin = twins[(entry.method, entry.config_id)]
+        assert entry.params == twin.params
+        assert entry.trial_config == dataclasses.replace(
+            twin.trial_config, seed=entry.seed, checkpoint_dir=entry.trial_config.checkpoint_dir
+        )
     # the other methods of a study are untouched by a method's fixed values
     spec = parse_spec(
         BASE | {"methods": {"pixel": {}, "p2": {"encoder": "pixel", "sac": {"lr": 3e-4}}}}

@@ -43,7 +43,7 @@ def test_solves_needs_the_bar_and_an_interval_above_chance():
 def test_the_solves_claims_at_each_gradient_budget(tmp_path):
     frame = load_study_frame(thesis_result.STORAGE, "fetch_reach_cpu")
     missing = f"sqlite:///{tmp_path / 'none.db'}"
-    lines = thesis_result.budget_claims(frame, missing, "fetch_reach_budget")
+    lines = thesis_result.budget_claims(frame, [("fetch_reach_budget", missing)])
     assert len(lines) == 1 and lines[0].startswith("No budget study: ")
     assert not (tmp_path / "none.db").exists()  # nothing created
 
@@ -51,7 +51,12 @@ def test_the_solves_claims_at_each_gradient_budget(tmp_path):
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     spec = load_spec(ROOT / "studies" / "fetch_reach_budget.yaml")
     write_planned_study(url, spec, final_success=lambda key: 0.9 if "b128x2" in key else 0.3)
-    lines = thesis_result.budget_claims(frame, url, "fetch_reach_budget")
+    follow_up = ("fetch_reach_budget_seeds", missing)  # not published: said, not joined
+    lines = thesis_result.budget_claims(frame, [("fetch_reach_budget", url), follow_up])
+    assert lines[1] == (
+        f"fetch_reach_budget_seeds is not joined: {tmp_path / 'none.db'} does not exist "
+        "(studies/fetch_reach_budget_seeds.yaml, not published yet)."
+    )
     assert "Rule: " in lines[0] and "random agent's success rate (0.18)" in lines[0]
     claims = [line for line in lines if line.startswith("- ")]
     assert len(claims) == 8  # pixel and conv at 1/16, 1/16 with critic_tau 0.01, 1/4, 1/2
@@ -63,3 +68,15 @@ def test_the_solves_claims_at_each_gradient_budget(tmp_path):
         "4 trials (IQM final success 0.90 [0.90, 0.90]"
     )
     assert claims[7].startswith("- CONV solves FetchReach: holds at 1/2 ")
+
+    # the follow-up on seeds 2 and 3, published: every setting it ran gains its 4 trials
+    more = f"sqlite:///{tmp_path / 'seeds.db'}"
+    spec = load_spec(ROOT / "studies" / "fetch_reach_budget_seeds.yaml")
+    write_planned_study(more, spec, final_success=lambda key: 0.9 if "b128x2" in key else 0.3)
+    follow_up = ("fetch_reach_budget_seeds", more)
+    lines = thesis_result.budget_claims(frame, [("fetch_reach_budget", url), follow_up])
+    assert "(fetch_reach_cpu + fetch_reach_budget + fetch_reach_budget_seeds)" in lines[0]
+    claims = [line for line in lines if line.startswith("- ")]
+    assert len(claims) == 8
+    assert claims[0].startswith(published + "15k steps, 8 trials")
+    assert "not reliable" not in claims[0]

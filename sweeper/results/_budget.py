@@ -12,19 +12,23 @@ are stated once instead of in every label. Settings come from each trial's own p
 Pairing: a method's *line* is its encoder with its option space (the stored spec's
 ``methods.<name>``): conv, conv_b128 and conv_tau01 are one line, conv_pytorch_init
 (``init: pytorch``) another, "conv (init pytorch)". A line's trials count only on the
-(config_id, seed) pairs that every joined study with that line planned. The first study is
-the reference: a study whose configuration i differs from the reference's in a sampled SAC
-value (every SAC field but those some method fixes) or in a shared line's encoder options,
-or whose env steps differ, is left out of the join with the reason, rather than compared
-wrongly. The controls (``TRUE_REWARD_METHODS``) have no encoder: their level is reported
-beside the table, on the pairs every joined study planned.
+configurations that every setting of the line was planned on (in whichever study), with
+every seed planned for them: configurations are a selection (fetch_reach_budget re-runs
+fetch_reach_cpu's first two), seeds are replicates, so a follow-up study on new seeds
+adds trials to the settings it runs without dropping the others' (each row says its n).
+The first study is the reference: a study whose configuration i differs from the
+reference's in a sampled SAC value (every SAC field but those some method fixes) or in a
+shared line's encoder options, or whose env steps differ, is left out of the join with
+the reason, rather than compared wrongly. The controls (``TRUE_REWARD_METHODS``) have no
+encoder: their level is reported beside the table, on the configurations every encoder
+line is compared on.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -138,6 +142,7 @@ class StudyTrials:
     conditions: dict[str, Any]  # the stored spec's env and budget, "env.image_size": 84
     fixed_sac: frozenset[str]  # SAC fields some method of the study fixes
     lines: dict[str, str]  # method -> its line (``method_lines``), in the spec's order
+    settings: dict[str, str]  # method -> its fixed SAC values and precision (``method_settings``)
     planned: dict[str, set[tuple[int, int]]]  # method -> its planned (config_id, seed)
     trials: pd.DataFrame  # ``study_trials``
 
@@ -172,6 +177,25 @@ def method_lines(frame: pd.DataFrame) -> dict[str, str]:
         stored.pop("sac", None)
         lines[method] = method if encoder in TRUE_REWARD_METHODS else line_name(encoder, stored)
     return lines
+
+
+def method_settings(spec: Mapping[str, Any], methods: Sequence[str]) -> dict[str, str]:
+    """Each method's setting as planned, from the stored spec: the study's SAC section with
+    the method's own ``sac`` on top, and the precision (JSON). Two methods of one line with
+    the same setting run the same SAC values on each configuration (the join checks that the
+    sampled ones agree), whichever study they are in."""
+    declared = spec.get("methods") or {}
+    study_sac = spec.get("sac") or {}
+    return {
+        method: json.dumps(
+            {
+                "sac": study_sac | ((declared.get(method) or {}).get("sac") or {}),
+                "precision": spec.get("precision", "fp32"),
+            },
+            sort_keys=True,
+        )
+        for method in methods
+    }
 
 
 def trial_outcomes(frame: pd.DataFrame) -> pd.DataFrame:
@@ -242,7 +266,8 @@ def study_trials(name: str, frame: pd.DataFrame) -> StudyTrials:
     for key in info.attrs.get("plan") or trials["key"].tolist():
         method, config_id, seed = key.split("/")
         planned.setdefault(method, set()).add((int(config_id), int(seed)))
-    return StudyTrials(name, steps, conditions, frozenset(fixed), lines, planned, table)
+    settings = method_settings(spec, list(planned))
+    return StudyTrials(name, steps, conditions, frozenset(fixed), lines, settings, planned, table)
 
 
 # ---- the join ------------------------------------------------------------------------
@@ -290,15 +315,36 @@ def pairing_problems(
     return problems
 
 
-def common_pairs(studies: Sequence[StudyTrials], line: str | None) -> set[tuple[int, int]]:
-    """The (config_id, seed) pairs every study that has ``line`` planned for it (None:
-    every study, any method): where its trials are compared."""
-    sets = []
+def planned_by_setting(
+    studies: Sequence[StudyTrials], wanted: Callable[[str], bool]
+) -> list[set[tuple[int, int]]]:
+    """Per setting of the methods ``wanted`` (by line name), the (config_id, seed) pairs
+    planned with it in any of ``studies``."""
+    by_setting: dict[str, set[tuple[int, int]]] = {}
     for study in studies:
-        methods = [m for m in study.planned if line is None or study.lines.get(m, m) == line]
-        if methods:
-            sets.append(set().union(*(study.planned[m] for m in methods)))
-    return set.intersection(*sets) if sets else set()
+        for method, pairs in study.planned.items():
+            if wanted(study.lines.get(method, method)):
+                by_setting.setdefault(study.settings.get(method, ""), set()).update(pairs)
+    return list(by_setting.values())
+
+
+def line_pairs(studies: Sequence[StudyTrials], line: str) -> set[tuple[int, int]]:
+    """Where ``line``'s trials are compared: the configurations every setting of the line
+    was planned on (in whichever study), with every seed any setting planned for them."""
+    settings = planned_by_setting(studies, lambda name: name == line)
+    if not settings:
+        return set()
+    configs = set.intersection(*({c for c, _ in pairs} for pairs in settings))
+    return {(c, s) for pairs in settings for c, s in pairs if c in configs}
+
+
+def control_pairs(
+    studies: Sequence[StudyTrials], control: str, configs: set[int] | None
+) -> set[tuple[int, int]]:
+    """A control's planned pairs (any study) on ``configs``, the configurations every
+    encoder line is compared on (None: no encoder line, every configuration)."""
+    planned = set().union(*planned_by_setting(studies, lambda name: name == control))
+    return {(c, s) for c, s in planned if configs is None or c in configs}
 
 
 @dataclass(frozen=True)
@@ -339,7 +385,10 @@ def join_studies(studies: Sequence[StudyTrials]) -> BudgetJoin:
     trials = trials[trials["samples"].notna()].astype({"samples": int})
     lines = dict.fromkeys(line for s in joined for line in s.lines.values())
     controls = {s.lines[m] for s in joined for m in s.lines if m in TRUE_REWARD_METHODS}
-    pairs = {line: common_pairs(joined, None if line in controls else line) for line in lines}
+    pairs = {line: line_pairs(joined, line) for line in lines if line not in controls}
+    compared = [{c for c, _ in p} for p in pairs.values()]
+    configs = set.intersection(*compared) if compared else None
+    pairs |= {line: control_pairs(joined, line, configs) for line in controls}
     keep = np.array(
         [
             (c, s) in pairs[line]
@@ -475,8 +524,8 @@ def interval_columns(name: str, interval: Interval) -> dict[str, float]:
 
 def controls_table(join: BudgetJoin, *, seed: int = 0) -> pd.DataFrame:
     """The controls' level beside the table: per study, control method and setting, IQM
-    final success and IQM AUC with 95 % intervals over its done trials on the pairs every
-    joined study planned."""
+    final success and IQM AUC with 95 % intervals over its done trials on its pairs
+    (``control_pairs``)."""
     done = join.trials[join.trials["control"] & join.trials["auc"].notna()]
     keys = ["study", "method", "setting"]
     parts = dict(iter(done.groupby(keys, sort=False)))
@@ -683,9 +732,11 @@ def budget_markdown(join: BudgetJoin, table: pd.DataFrame, controls: pd.DataFram
     lines += [
         "",
         "An encoder (a line: the encoder with its option space, so variants that only fix SAC "
-        "fields share it) is compared only on the (config_id, seed) pairs every joined study "
-        "with it planned; configuration i is the same sampled SAC values and encoder options "
-        "in every joined study (checked). Pairs per encoder: "
+        "fields share it) is compared only on the configurations every setting of it was "
+        "planned on, in whichever study, with every seed planned for them (seeds are "
+        "replicates: a study on new seeds adds trials to the settings it runs; each row says "
+        "its n); configuration i is the same sampled SAC values and encoder options in every "
+        "joined study (checked). Pairs per encoder: "
         + "; ".join(f"{line} {pairs_text(join.pairs[line])}" for line in join.lines)
         + ".",
     ]
@@ -734,8 +785,8 @@ def budget_markdown(join: BudgetJoin, table: pd.DataFrame, controls: pd.DataFram
         "departure: the one without it at the same samples), as the studies' improvement "
         f"tables compute it. \\* fewer than {MIN_RELIABLE} pairs: not reliable.",
         "",
-        "Controls (no encoder: not rows of the table; on the pairs every joined study "
-        f"planned, {control_pairs}):",
+        "Controls (no encoder: not rows of the table; on the configurations every encoder "
+        f"is compared on, {control_pairs}):",
         "",
         f"| study | control | setting | trials | IQM final success [{CONFIDENCE:.0%} CI] "
         "| IQM AUC [CI] |",
