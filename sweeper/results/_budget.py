@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -315,15 +315,13 @@ def pairing_problems(
     return problems
 
 
-def planned_by_setting(
-    studies: Sequence[StudyTrials], wanted: Callable[[str], bool]
-) -> list[set[tuple[int, int]]]:
-    """Per setting of the methods ``wanted`` (by line name), the (config_id, seed) pairs
-    planned with it in any of ``studies``."""
+def planned_by_setting(studies: Sequence[StudyTrials], line: str) -> list[set[tuple[int, int]]]:
+    """Per setting of ``line`` (a control: its name), the (config_id, seed) pairs planned
+    with it in any of ``studies``."""
     by_setting: dict[str, set[tuple[int, int]]] = {}
     for study in studies:
         for method, pairs in study.planned.items():
-            if wanted(study.lines.get(method, method)):
+            if study.lines.get(method, method) == line:
                 by_setting.setdefault(study.settings.get(method, ""), set()).update(pairs)
     return list(by_setting.values())
 
@@ -331,7 +329,7 @@ def planned_by_setting(
 def line_pairs(studies: Sequence[StudyTrials], line: str) -> set[tuple[int, int]]:
     """Where ``line``'s trials are compared: the configurations every setting of the line
     was planned on (in whichever study), with every seed any setting planned for them."""
-    settings = planned_by_setting(studies, lambda name: name == line)
+    settings = planned_by_setting(studies, line)
     if not settings:
         return set()
     configs = set.intersection(*({c for c, _ in pairs} for pairs in settings))
@@ -343,7 +341,7 @@ def control_pairs(
 ) -> set[tuple[int, int]]:
     """A control's planned pairs (any study) on ``configs``, the configurations every
     encoder line is compared on (None: no encoder line, every configuration)."""
-    planned = set().union(*planned_by_setting(studies, lambda name: name == control))
+    planned = set().union(*planned_by_setting(studies, control))
     return {(c, s) for c, s in planned if configs is None or c in configs}
 
 
