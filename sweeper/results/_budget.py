@@ -316,8 +316,8 @@ def pairing_problems(
 
 
 def planned_by_setting(studies: Sequence[StudyTrials], line: str) -> list[set[tuple[int, int]]]:
-    """Per setting of ``line`` (a control: its name), the (config_id, seed) pairs planned
-    with it in any of ``studies``."""
+    """Per setting of ``line`` (a line's name: an encoder line or a control), the
+    (config_id, seed) pairs planned with it in any of ``studies``."""
     by_setting: dict[str, set[tuple[int, int]]] = {}
     for study in studies:
         for method, pairs in study.planned.items():
