@@ -1,19 +1,20 @@
 """Update speed against the machine's limit, in every layout and precision.
 
-Prints the CPU (model, and whether it has native bf16: AMX or AVX512-BF16), a dense
-2048^3 matmul's GFLOP/s in fp32 and in bf16 measured in the same run with the same
-threads (the peaks), then one full SAC-DrQ update (augmentation, critic, actor,
-temperature, target; ``actor_update_every=1``) per row: 84x84 and 48x48, batch 32, 128
-and 256, 32 filters, the agent's precisions (fp32, bf16 autocast), the convolutions
-channels-last and NCHW. Each row: ms per update (median), the convolution and matmul
-GFLOP it does (``torch.utils.flop_counter``), GFLOP/s, and that as a % of the matching
-peak. Targets (issue 34): fp32 at batch 256 >= 80% of the fp32 peak, bf16 >= 35% of the
-bf16 peak. Last, with ``--trial-steps N``, a real trial at ``bench_learning.FETCH_CPU``
-cut to N env steps (``bench_gpu_trial``'s measurement), in fp32 in either conv layout and
-in bf16: its env steps per second while learning.
+Prints the CPU (model, and whether it has native bf16: AMX or AVX512-BF16), a dense 2048^3
+matmul's GFLOP/s in fp32 and in bf16 measured in the same run with the same threads (the
+peaks), then one full SAC-DrQ update (augmentation, critic, actor, temperature, target;
+``actor_update_every=1``) per row: 84x84 and 48x48, batch 32, 128 and 256, 32 filters
+(A.1's; ``--filters 16``: the CPU studies'), the agent's precisions (fp32, bf16 autocast),
+the convolutions channels-last and NCHW. Each row: ms per update (median), the convolution
+and matmul GFLOP it does (``torch.utils.flop_counter``), GFLOP/s, and that as a % of the
+matching peak. Targets (issue 34): fp32 at batch 256 >= 80% of the fp32 peak, bf16 >= 35%
+of the bf16 peak. Last, with ``--trial-steps N``, a real trial at
+``bench_learning.FETCH_CPU`` cut to N env steps (``bench_gpu_trial``'s measurement), in
+fp32 in either conv layout and in bf16: its env steps per second while learning.
 
 Run: ``./run python benchmarks/bench_update_speed.py [--threads 1] [--repeats 5]
-[--sizes 84,48] [--batches 32,128,256] [--trial-steps 1500]``
+[--sizes 84,48] [--batches 32,128,256] [--filters 32] [--precisions fp32,bf16]
+[--trial-steps 1500]``
 """
 
 from __future__ import annotations
@@ -89,10 +90,10 @@ def median_seconds(call: Callable[[], object], repeats: int) -> float:
 
 
 def time_update(
-    size: int, batch_size: int, repeats: int, precision: str, channels_last: bool
+    size: int, batch_size: int, filters: int, repeats: int, precision: str, channels_last: bool
 ) -> tuple[float, float]:
     """(seconds per update, counted GFLOP per update) of one full update."""
-    cfg = SACConfig(batch_size=batch_size, num_filters=32, actor_update_every=1)
+    cfg = SACConfig(batch_size=batch_size, num_filters=filters, actor_update_every=1)
     agent = SAC((size, size, 3), (size, size, 3), 4, cfg, torch.device("cpu"), precision,
                 channels_last)  # fmt: skip
     batch = random_batch(size, batch_size, np.random.default_rng(0))
@@ -132,33 +133,44 @@ def ints(text: str) -> list[int]:
     return [int(part) for part in text.split(",")]
 
 
+def precisions(text: str) -> list[str]:
+    names = text.split(",")
+    unknown = sorted(set(names) - set(PRECISIONS))
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown {unknown}; one of {list(PRECISIONS)}")
+    return names
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--sizes", type=ints, default=[84, 48])
     parser.add_argument("--batches", type=ints, default=[32, 128, 256])
+    parser.add_argument("--filters", type=int, default=32)
+    parser.add_argument("--precisions", type=precisions, default=list(PRECISIONS))
     parser.add_argument("--trial-steps", type=int, default=0, help="0: no trial")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(cpu_line())
-    print(f"torch {torch.__version__}, {args.threads} thread(s), 32 filters, median of "
+    print(f"torch {torch.__version__}, {args.threads} thread(s), {args.filters} filters, median of "
           f"{args.repeats} updates")  # fmt: skip
     dtypes = {"fp32": torch.float32, "bf16": torch.bfloat16}
-    peaks = {name: matmul_gflops(dtype) for name, dtype in dtypes.items()}
+    # only the peaks of the rows asked for: bf16 matmul without native bf16 takes minutes
+    peaks = {name: matmul_gflops(dtypes[name]) for name in args.precisions}
     rows = []
     for size in args.sizes:
         for batch_size in args.batches:
-            for precision in PRECISIONS:
+            for precision in args.precisions:
                 for channels_last in (True, False):
                     seconds, gflop = time_update(
-                        size, batch_size, args.repeats, precision, channels_last
+                        size, batch_size, args.filters, args.repeats, precision, channels_last
                     )
                     rows.append((size, batch_size, precision, channels_last, seconds, gflop))
     # the peaks again after the rows: the higher of the two, as the machine allowed
-    peaks = {name: max(peaks[name], matmul_gflops(dtype)) for name, dtype in dtypes.items()}
-    print(f"dense matmul 2048^3: fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} "
-          "GFLOP/s")  # fmt: skip
+    peaks = {name: max(peak, matmul_gflops(dtypes[name])) for name, peak in peaks.items()}
+    print("dense matmul 2048^3: " + ", ".join(f"{name} {peak:.0f} GFLOP/s"
+                                               for name, peak in peaks.items()))  # fmt: skip
     print("| image | batch | precision | layout | ms/update | GFLOP | GFLOP/s | % of peak |")
     print("|---|---|---|---|---|---|---|---|")
     for size, batch_size, precision, channels_last, seconds, gflop in rows:
