@@ -773,7 +773,7 @@ def budget_markdown(join: BudgetJoin, table: pd.DataFrame, controls: pd.DataFram
         )
     if table.empty:
         lines.append("| no joined trial done yet |  |  |  |  |  |  |  |  |  |")
-    control_pairs = pairs_text(join.pairs[controls["method"].iloc[0]]) if len(controls) else "–"
+    controls_where = pairs_text(join.pairs[controls["method"].iloc[0]]) if len(controls) else "–"
     lines += [
         "",
         f"Final success: the success rate at the last evaluation; reaching {SOLVED}: at some "
@@ -784,7 +784,7 @@ def budget_markdown(join: BudgetJoin, table: pd.DataFrame, controls: pd.DataFram
         f"tables compute it. \\* fewer than {MIN_RELIABLE} pairs: not reliable.",
         "",
         "Controls (no encoder: not rows of the table; on the configurations every encoder "
-        f"is compared on, {control_pairs}):",
+        f"is compared on, {controls_where}):",
         "",
         f"| study | control | setting | trials | IQM final success [{CONFIDENCE:.0%} CI] "
         "| IQM AUC [CI] |",
