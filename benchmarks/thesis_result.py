@@ -102,34 +102,40 @@ def study_and_storage(text: str) -> tuple[str, str]:
     return name, url
 
 
+def read_budget(study: str, storage: str):
+    """The search stage of ``study`` at ``storage``, or why it cannot be read (one line)."""
+    from sweeper.results._frame import load_study_frame, stage_frame
+
+    path = sqlite_file(storage)
+    if path is not None and not path.is_file():
+        shown = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
+        return f"{shown} does not exist (studies/{study}.yaml, not published yet)"
+    try:
+        return stage_frame(load_study_frame(storage, study), "search")
+    except ValueError as e:
+        return str(e)
+
+
 def budget_claims(frame, budgets: Sequence[tuple[str, str]], seed: int = 0) -> list[str]:
     """The "solves" claims at every setting of the budget join of ``frame`` (the published
     study, read) with the ``budgets`` (``(study, storage)``: the ladder, then follow-ups);
     one line for each that cannot be read (the ladder: then no claim)."""
     from sweeper.results._budget import budget_table, join_studies, study_trials
-    from sweeper.results._frame import load_study_frame, random_success, stage_frame, study_info
+    from sweeper.results._frame import random_success, stage_frame, study_info
     from sweeper.results._report import MIN_RELIABLE, _fmt
 
     studies, missing = [study_trials(study_info(frame).name, stage_frame(frame, "search"))], []
     for index, (study, storage) in enumerate(budgets):
-        path = sqlite_file(storage)
-        if path is not None and not path.is_file():
-            shown = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
-            problem = f"{shown} does not exist (studies/{study}.yaml, not published yet)"
-        else:
-            try:
-                budget = stage_frame(load_study_frame(storage, study), "search")
-            except ValueError as e:
-                problem = str(e)
-            else:
-                studies.append(study_trials(study, budget))
-                continue
-        if index == 0:
+        budget = read_budget(study, storage)
+        if not isinstance(budget, str):
+            studies.append(study_trials(study, budget))
+        elif index == 0:
             return [
-                f"No budget study: {problem}, so the claims above are judged at 1/16 of "
+                f"No budget study: {budget}, so the claims above are judged at 1/16 of "
                 "A.1's gradient samples only."
             ]
-        missing.append(f"{study} is not joined: {problem}.")
+        else:
+            missing.append(f"{study} is not joined: {budget}.")
     join = join_studies(studies)
     table = budget_table(join, seed=seed)
     random = random_success(frame)
