@@ -322,7 +322,7 @@ def planned_by_setting(studies: Sequence[StudyTrials], line: str) -> list[set[tu
     for study in studies:
         for method, pairs in study.planned.items():
             if study.lines.get(method, method) == line:
-                by_setting.setdefault(study.settings.get(method, ""), set()).update(pairs)
+                by_setting.setdefault(study.settings[method], set()).update(pairs)
     return list(by_setting.values())
 
 
