@@ -35,6 +35,10 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -102,7 +106,7 @@ def study_and_storage(text: str) -> tuple[str, str]:
     return name, url
 
 
-def read_budget(study: str, storage: str):
+def read_budget(study: str, storage: str) -> pd.DataFrame | str:
     """The search stage of ``study`` at ``storage``, or why it cannot be read (one line)."""
     from sweeper.results._frame import load_study_frame, stage_frame
 
