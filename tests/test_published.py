@@ -81,3 +81,23 @@ def test_a_published_study_is_complete_and_in_today_s_format(folder: Path, tmp_p
         assert not raw, f"{key}: raw JSON user attrs {raw}"
         for meta in artifacts_in(trial.system_attrs):
             assert (folder / "artifacts" / meta["artifact_id"]).is_file(), f"{key}: {meta}"
+
+
+#: the budget ladder's joined report (``docs/budget/``): these published studies, joined
+BUDGET_STUDIES = ("fetch_reach_cpu", "fetch_reach_budget", "fetch_reach_budget_seeds")
+
+
+def test_the_published_budget_report_is_the_published_studies_joined(tmp_path: Path):
+    """``docs/budget/budget_table.csv`` is what ``sweeper aggregate`` makes of the three
+    committed databases today, byte for byte: a new snapshot of any of them fails here
+    until the joined report is written again (``docs/budget/README.md`` says how)."""
+    specs, storages = [], []
+    for study in BUDGET_STUDIES:
+        shutil.copy(ROOT / "docs" / "studies" / study / "study.db", tmp_path / f"{study}.db")
+        specs.append(str(ROOT / "studies" / f"{study}.yaml"))
+        storages += ["--storage", f"sqlite:///{tmp_path / f'{study}.db'}"]
+    out = tmp_path / "budget"
+    assert main(["aggregate", *specs, *storages, "--no-dashboard", "--out", str(out)]) == 0
+    for table in ("budget_table.csv", "budget_controls.csv"):
+        committed = (ROOT / "docs" / "budget" / table).read_text()
+        assert (out / table).read_text() == committed, f"docs/budget/{table} is out of date"
