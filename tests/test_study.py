@@ -361,3 +361,36 @@ def test_a_full_disk_while_the_database_is_created_is_one_line(tmp_path):
         f"storage: cannot write {url}: its disk is full (database or disk is full); free "
         "space, then launch again"
     )
+
+
+def test_status_says_where_each_running_trial_is_while_its_driver_runs(tmp_path, capsys):
+    import datetime
+
+    from sweeper.storage import StudyStore
+
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    storage = open_storage(url)
+    study = write_synthetic_study(storage, "ci", methods=("pixel", "linear"), configs=1,
+                                  seeds=(0,), steps=(0, 100, 200, 300),
+                                  special=Special(running="linear/0/0"))  # fmt: skip
+    spec = spec_at(url)
+    plan_hash = build_plan(spec).hash
+    study.set_user_attr("plan_hash", plan_hash)
+    assert status.run(spec, argparse.Namespace()) == 0  # no driver: nothing runs
+    assert "running:" not in capsys.readouterr().out
+    StudyStore.open_or_create(storage, "ci", {"plan_hash": plan_hash}).claim_driver()  # alive
+    assert status.run(spec, argparse.Namespace()) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[-2].startswith("driver: running")
+    assert printed[-1].startswith("running: linear/0/0 (trial 1): step 200 of 300, started ")
+    storage.engine.dispose()
+
+    trial = study.trials[1]
+    later = trial.datetime_start + datetime.timedelta(minutes=65)
+    assert status.running_line("linear/0/0", trial, 300, later).endswith(
+        "step 200 of 300, started 1 h 5 min ago"
+    )
+    trial.user_attrs["paused_at"] = 200  # successive halving: waits at its rung
+    assert "step 200 of 300, at its rung," in status.running_line("k", trial, 300, later)
+    trial.user_attrs["curve"] = None  # before its first evaluation
+    assert "(trial 1): no evaluation yet, started" in status.running_line("k", trial, 300, later)

@@ -1,4 +1,5 @@
-"""``sweeper status SPEC``: the per-method ledger of a study (done, running, failed, left).
+"""``sweeper status SPEC``: the per-method ledger of a study (done, running, failed, left),
+and where each running trial is.
 
 Counts are per plan key (``sweeper.storage._ledger``): a key re-run after a crash is
 counted once, by its current trial. Reads only, on read-only connections opened once
@@ -8,17 +9,19 @@ counted once, by its current trial. Reads only, on read-only connections opened 
 from __future__ import annotations
 
 import argparse
+import datetime
 import sys
 from typing import TYPE_CHECKING, TextIO
 
 from agent.config import Outcome
-from sweeper.plan import build_plan, in_spec_order
+from sweeper.plan import build_plan, format_duration, in_spec_order
 from sweeper.spec import plural
 from sweeper.storage import (
     NoStudy,
     StudyStore,
     check_plan,
     current_trials,
+    curve_of,
     ledger,
     open_for_reading,
     redact,
@@ -26,6 +29,8 @@ from sweeper.storage import (
 )
 
 if TYPE_CHECKING:
+    from optuna.trial import FrozenTrial
+
     from sweeper.spec import StudySpec
 
 
@@ -74,11 +79,16 @@ def status_lines(spec: StudySpec, store: StudyStore | NoStudy) -> list[str]:
         lines += _table(ledger(confirm_keys, trials, alive))
         keys = [*keys, *confirm_keys]
     driver = attrs.get("driver")
+    current = current_trials(trials)
     if alive:
         lines.append(f"driver: running (host {driver['host']}, pid {driver['pid']})")
+        now = datetime.datetime.now()  # Optuna's datetimes are the writer's local time
+        for key in keys:
+            trial = current.get(key)
+            if trial is not None and trial.state.name == "RUNNING":
+                lines.append(running_line(key, trial, spec.budget.env_steps, now))
     else:
         lines.append("driver: not running")
-    current = current_trials(trials)
     for key in keys:
         trial = current.get(key)
         if trial is None or trial.state.name != "FAIL":
@@ -91,6 +101,18 @@ def status_lines(spec: StudySpec, store: StudyStore | NoStudy) -> list[str]:
     if not alive and any(t.state.name == "RUNNING" for t in current.values()):
         lines.append("trials marked RUNNING have no live driver; a launch resumes them")
     return lines
+
+
+def running_line(key: str, trial: FrozenTrial, env_steps: int, now: datetime.datetime) -> str:
+    """Where a running trial is: the env step of its last evaluation (a trial reports at
+    evaluations only), and how long ago it started."""
+    curve = curve_of(trial)
+    step = curve["step"][-1] if curve else None
+    where = "no evaluation yet" if step is None else f"step {step:,} of {env_steps:,}"
+    if step is not None and step == trial.user_attrs.get("paused_at"):
+        where += ", at its rung"  # successive halving: it waits there for the decision
+    since = format_duration((now - trial.datetime_start).total_seconds())
+    return f"running: {key} (trial {trial.number}): {where}, started {since} ago"
 
 
 def _table(counts: dict) -> list[str]:
