@@ -249,9 +249,13 @@ def test_launch_on_postgresql(tmp_path):
             checkpoints=str(tmp_path / "checkpoints"),
             artifacts=str(tmp_path / "artifacts"),  # not the checkout's runs/
         )
-        assert cli.main(["launch", str(spec), "--max-concurrent", "1"]) == 0
+        # one trial at a time with both of Ray's CPUs (the spec says 1 thread, 1 CPU a trial)
+        args = ["--max-concurrent", "1", "--threads-per-trial", "2"]
+        assert cli.main(["launch", str(spec), *args]) == 0
         check_ci_study(load(url))
-        assert load(url).user_attrs["spec"]["execution"]["max_concurrent"] == 1
+        execution = load(url).user_attrs["spec"]["execution"]
+        assert (execution["max_concurrent"], execution["threads_per_trial"]) == (1, 2)
+        assert execution["cpus_per_trial"] == 2
     finally:
         with psycopg.connect(PG_ADMIN, autocommit=True) as connection:
             connection.execute(f"DROP SCHEMA {schema} CASCADE")
@@ -298,7 +302,8 @@ def test_launch_refuses_another_plan(tmp_path, monkeypatch, capsys):
 
 def test_help(capsys):
     for command, flags in [
-        ("launch", ["--storage", "--address", "--max-concurrent"]),
+        ("launch", ["--storage", "--address", "--max-concurrent", "--threads-per-trial"]),
+        ("confirm", ["--max-concurrent", "--threads-per-trial"]),
         ("status", ["--storage"]),
     ]:
         with pytest.raises(SystemExit) as info:

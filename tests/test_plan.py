@@ -102,6 +102,9 @@ def test_hash_ignores_where_trials_run_but_not_what_they_compute():
     assert build_plan(moved).hash == base
     runtime = copy.deepcopy(BASE) | {"execution": {"threads_per_trial": 2, "checkpoint_every": 9}}
     assert build_plan(parse_spec(runtime)).hash == base
+    threaded = build_plan(spec.with_overrides(threads_per_trial=3))  # `--threads-per-trial 3`
+    assert threaded.hash == base
+    assert {entry.trial_config.threads for entry in threaded.entries} == {3}
     for change in (
         {"budget": {**BASE["budget"], "env_steps": 2000}},
         {"budget": {**BASE["budget"], "eval_episodes": 3}},

@@ -252,6 +252,13 @@ def test_overrides_are_validated():
     assert spec.with_overrides() == spec
     with pytest.raises(SpecError, match=r"execution\.max_concurrent"):
         spec.with_overrides(max_concurrent=0)
+    # threads reserve as many CPUs a trial, never fewer than the spec reserves
+    threaded = spec.with_overrides(threads_per_trial=2).execution
+    assert (threaded.threads_per_trial, threaded.cpus_per_trial) == (2, 2)
+    roomy = parse_spec(copy.deepcopy(BASE) | {"execution": {"cpus_per_trial": 4}})
+    assert roomy.with_overrides(threads_per_trial=2).execution.cpus_per_trial == 4
+    with pytest.raises(SpecError, match=r"execution\.threads_per_trial"):
+        spec.with_overrides(threads_per_trial=0)
     with pytest.raises(SpecError, match="storage"):
         spec.with_overrides(storage="not a url")
 

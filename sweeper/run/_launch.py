@@ -82,6 +82,7 @@ def prepare(
     storage: str | None = None,
     address: str | None = None,
     max_concurrent: int | None = None,
+    threads_per_trial: int | None = None,
 ) -> tuple[StudySpec, Plan]:
     """Validate the spec (or the spec file) with its overrides, build its plan and check
     the storage.
@@ -91,8 +92,14 @@ def prepare(
     """
     if not isinstance(spec, StudySpec):
         spec = load_spec(spec)
-    if (storage, address, max_concurrent) != (None, None, None):
-        spec = spec.with_overrides(storage=storage, address=address, max_concurrent=max_concurrent)
+    overrides = dict(
+        storage=storage,
+        address=address,
+        max_concurrent=max_concurrent,
+        threads_per_trial=threads_per_trial,
+    )
+    if any(value is not None for value in overrides.values()):
+        spec = spec.with_overrides(**overrides)
     plan = build_plan(spec)
     check_storage(spec.storage_url)
     return spec, plan

@@ -26,6 +26,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--address", metavar="ADDR", help="as `sweeper launch --address`")
     parser.add_argument("--max-concurrent", metavar="N", type=positive_int, help="trials at once")
+    parser.add_argument(
+        "--threads-per-trial",
+        metavar="N",
+        type=positive_int,
+        help="as `sweeper launch --threads-per-trial`",
+    )
 
 
 def run(spec: StudySpec, args: argparse.Namespace) -> int:
@@ -40,7 +46,12 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     with stop_on_signals():
         try:
             try:
-                spec, plan = prepare(spec, address=args.address, max_concurrent=args.max_concurrent)
+                spec, plan = prepare(
+                    spec,
+                    address=args.address,
+                    max_concurrent=args.max_concurrent,
+                    threads_per_trial=args.threads_per_trial,
+                )
                 check_files(spec, str(Path(args.spec)), can_skip=False)
                 top_k, seeds = settings(spec, args.top_k, args.seeds)
                 check_study(spec, plan, top_k, seeds)

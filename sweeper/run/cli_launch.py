@@ -31,6 +31,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="trials at once, overriding the spec's execution.max_concurrent",
     )
     parser.add_argument(
+        "--threads-per-trial",
+        metavar="N",
+        type=positive_int,
+        help="torch threads of each trial, overriding the spec's execution.threads_per_trial "
+        "(and reserving as many CPUs a trial): e.g. one long trial alone with every core; "
+        "the plan and its trials stay the same",
+    )
+    parser.add_argument(
         "--skip-missing",
         action="store_true",
         help="launch without the methods whose files are missing here (e.g. vgg's "
@@ -71,7 +79,12 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     with stop_on_signals():
         try:
             try:
-                spec, plan = prepare(spec, address=args.address, max_concurrent=args.max_concurrent)
+                spec, plan = prepare(
+                    spec,
+                    address=args.address,
+                    max_concurrent=args.max_concurrent,
+                    threads_per_trial=args.threads_per_trial,
+                )
                 skip = check_files(spec, str(Path(args.spec)), args.skip_missing)
                 left_out = only_skip(spec, args.only)
             except ValueError as e:  # SpecError, StorageError

@@ -543,15 +543,22 @@ class StudySpec(StrictModel):
         storage: str | None = None,
         address: str | None = None,
         max_concurrent: int | None = None,
+        threads_per_trial: int | None = None,
     ) -> StudySpec:
-        """A copy with CLI overrides (None keeps the spec's value), validated again."""
+        """A copy with CLI overrides (None keeps the spec's value), validated again.
+        ``threads_per_trial`` also reserves that many CPUs a trial (``cpus_per_trial``, if
+        fewer): each thread needs a core, and Ray then never puts two trials on one."""
         data = self.model_dump(mode="json")
+        execution = data["execution"]
         if storage is not None:
             data["storage"] = storage
         if address is not None:
-            data["execution"]["address"] = address
+            execution["address"] = address
         if max_concurrent is not None:
-            data["execution"]["max_concurrent"] = max_concurrent
+            execution["max_concurrent"] = max_concurrent
+        if threads_per_trial is not None:
+            execution["threads_per_trial"] = threads_per_trial
+            execution["cpus_per_trial"] = max(execution["cpus_per_trial"], threads_per_trial)
         return parse_spec(data, source="override")
 
 
