@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=positive_int,
         help="torch threads of each trial, overriding the spec's execution.threads_per_trial "
         "(and reserving as many CPUs a trial): e.g. one long trial alone with every core; "
-        "the plan and its trials stay the same",
+        "the plan stays the same",
     )
     parser.add_argument(
         "--skip-missing",
