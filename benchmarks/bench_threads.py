@@ -45,7 +45,10 @@ def main() -> None:
     args = parser.parse_args()
     if args.trial_steps < 3:
         parser.error("--trial-steps must be at least 3")
-    entries = {e.key: e for e in build_plan(load_spec(args.spec)).entries}
+    try:
+        entries = {e.key: e for e in build_plan(load_spec(args.spec)).entries}
+    except ValueError as e:  # SpecError: a missing or bad spec, one line
+        parser.error(str(e))
     keys = args.keys.split(",")
     unknown = [k for k in keys if k not in entries]
     if unknown:
