@@ -451,10 +451,39 @@ def test_more_torch_threads_than_cpus_is_refused_with_the_fix(tmp_path):
     message = stream.getvalue().strip()
     assert len(message.splitlines()) == 1, message
     assert message.startswith("sweeper launch: execution: threads_per_trial 2 x 2 trials")
-    assert "2 CPUs" in message and "--max-concurrent 1" in message
+    assert "2 CPUs" in message and "--threads-per-trial 2" in message
     assert not (tmp_path / "study.db").exists()
-    stream = io.StringIO()  # one trial at a time fits
-    assert launch(*prepare(str(spec_path), max_concurrent=1), train=always_succeed) == 0
+    # the fix it names fits (this module's Ray has 2 CPUs: one trial at a time)
+    assert launch(*prepare(str(spec_path), threads_per_trial=2), train=always_succeed) == 0
+
+
+@pytest.mark.parametrize(
+    ("threads", "cpus_per_trial", "max_concurrent"), [(2, 1, 2), (2, 1, 1), (4, 1, 1), (3, 2, 2)]
+)
+def test_the_fix_for_too_many_threads_on_a_local_ray_fits_it(
+    threads, cpus_per_trial, max_concurrent
+):
+    """A local Ray has max_concurrent x cpus_per_trial CPUs: fewer trials at once shrink it
+    too, so the refusal names reserving CPUs (which fits), never --max-concurrent."""
+    from sweeper.run._resources import local_cpus, oversubscription
+    from sweeper.spec import Execution
+
+    execution = Execution(
+        threads_per_trial=threads, cpus_per_trial=cpus_per_trial, max_concurrent=max_concurrent
+    )
+    message = oversubscription(threads, max_concurrent, local_cpus(execution), local=True)
+    assert f"cpus_per_trial: {threads}, or --threads-per-trial {threads}" in message
+    assert "--max-concurrent" not in message
+    one_at_a_time = Execution(
+        threads_per_trial=threads, cpus_per_trial=cpus_per_trial, max_concurrent=1
+    )
+    assert oversubscription(threads, 1, local_cpus(one_at_a_time), local=True) is not None
+    reserved = Execution(
+        threads_per_trial=threads, cpus_per_trial=threads, max_concurrent=max_concurrent
+    )
+    assert oversubscription(threads, max_concurrent, local_cpus(reserved), local=True) is None
+    # a cluster's CPUs stay as they are: fewer at once is a fix there
+    assert "--max-concurrent 1" in oversubscription(2, 2, 2.0)
 
 
 def test_progress_display():

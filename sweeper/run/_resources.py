@@ -47,7 +47,8 @@ def pool_size(execution: Execution, planned: int, stream: TextIO) -> int | None:
         )
     size = min(fit, execution.max_concurrent, planned)
     threads = execution.threads_per_trial
-    refusal = oversubscription(threads, size, ray.cluster_resources().get("CPU", 0))
+    ray_cpus = ray.cluster_resources().get("CPU", 0)
+    refusal = oversubscription(threads, size, ray_cpus, local=execution.address is None)
     if refusal is not None:
         print(f"sweeper launch: execution: {refusal}", file=stream)
         return None
@@ -61,14 +62,21 @@ def pool_size(execution: Execution, planned: int, stream: TextIO) -> int | None:
 
 
 def oversubscription(
-    threads: int, trials: int, cpus: float, where: str = "Ray reports"
+    threads: int, trials: int, cpus: float, where: str = "Ray reports", local: bool = False
 ) -> str | None:
     """Why ``trials`` at once with ``threads`` torch threads each do not fit ``cpus``, and
     the fix; None when they fit. Torch threads beyond the cores make every trial several
-    times slower (9x measured), not just the extra ones."""
+    times slower (9x measured), not just the extra ones. ``local``: ``cpus`` are a local
+    Ray's, started with max_concurrent x cpus_per_trial CPUs, so running fewer at once
+    shrinks them too and only reserving more CPUs a trial helps."""
     if threads * trials <= cpus:
         return None
-    if threads > cpus:
+    if local:
+        fix = (
+            f"reserve them (cpus_per_trial: {threads}, or --threads-per-trial {threads}, "
+            "which reserves as many) or lower threads_per_trial"
+        )
+    elif threads > cpus:
         fix = f"lower threads_per_trial to at most {cpus:g}"
     else:
         fix = (
