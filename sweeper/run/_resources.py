@@ -68,7 +68,7 @@ def oversubscription(
     the fix; None when they fit. Torch threads beyond the cores make every trial several
     times slower (9x measured), not just the extra ones. ``local``: ``cpus`` are a local
     Ray's, started with max_concurrent x cpus_per_trial CPUs, so running fewer at once
-    shrinks them too and only reserving more CPUs a trial helps."""
+    shrinks them too: only more CPUs a trial (or fewer threads) help."""
     if threads * trials <= cpus:
         return None
     if local:
