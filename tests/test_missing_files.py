@@ -270,3 +270,45 @@ def test_only_runs_the_named_methods_and_a_later_launch_the_rest(
     study = optuna.load_study(study_name="arms", storage=open_storage(load_spec(spec).storage_url))
     assert study.user_attrs["plan_hash"] == build_plan(load_spec(spec)).hash
     assert sorted(t.user_attrs["key"] for t in study.get_trials()) == ["pixel/0/0", "pixel_tau/0/0"]
+
+
+def test_max_trials_starts_that_many_round_by_round_and_a_later_launch_the_rest(
+    tmp_path, monkeypatch, capsys, local_ray
+):
+    """``--max-trials N`` starts N of the trials left, a round's methods together (what a
+    machine lent for a few hours can finish, still paired); the rest stay left; 0 is
+    refused by the parser (exit 2) before anything runs."""
+    monkeypatch.chdir(tmp_path)
+    real_launch = launcher.launch
+    monkeypatch.setattr(
+        launcher, "launch", lambda spec, plan, **kw: real_launch(spec, plan, train=instant, **kw)
+    )
+    spec = write_ci_spec(
+        tmp_path / "spec.yaml", study="some", seeds=[0, 1],
+        methods={"pixel": {}, "pixel_tau": {"encoder": "pixel", "sac": {"critic_tau": 0.01}}},
+        storage=f"sqlite:///{tmp_path / 'study.db'}", checkpoints=str(tmp_path / "checkpoints"),
+    )  # fmt: skip
+    with monkeypatch.context() as patch:
+        patch.setattr(launcher, "start_ray", no_ray)
+        try:
+            cli.main(["launch", str(spec), "--max-trials", "0"])
+        except SystemExit as exit:
+            assert exit.code == 2
+        assert "--max-trials: must be an integer >= 1, got 0" in capsys.readouterr().err
+    assert cli.main(["launch", str(spec), "--max-trials", "2"]) == 0
+    err = capsys.readouterr().err
+    assert "0 of 4 trials done, 2 to run; 2 more left for a later launch (--max-trials)" in err
+    assert "some: 2/2 trials done" in err  # the display counts this launch's trials
+    study = optuna.load_study(study_name="some", storage=open_storage(load_spec(spec).storage_url))
+
+    def done() -> list[str]:
+        trials = study.get_trials(states=[TrialState.COMPLETE])
+        return sorted(t.user_attrs["key"] for t in trials)
+
+    assert done() == ["pixel/0/0", "pixel_tau/0/0"]  # the first round: paired
+    assert cli.main(["launch", str(spec), "--only", "pixel_tau", "--max-trials", "1"]) == 0
+    assert done() == ["pixel/0/0", "pixel_tau/0/0", "pixel_tau/0/1"]
+    assert status_rows(capsys, spec)["pixel"] == ["2", "1", "0", "0", "0", "1"]
+    assert cli.main(["launch", str(spec), "--max-trials", "5"]) == 0
+    assert "3 of 4 trials done, 1 to run\n" in capsys.readouterr().err
+    assert len(done()) == 4

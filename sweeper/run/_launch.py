@@ -39,6 +39,7 @@ from sweeper.plan import (
     TrialEstimate,
     build_plan,
     in_spec_order,
+    run_order,
     summary_lines,
 )
 from sweeper.run import _random_agent as random_agent
@@ -127,8 +128,9 @@ def report_metric_names(env: str) -> tuple[str, ...]:
 class Launch:
     """One launch, what each of its steps reads: the spec, the plan (whole: its hash is the
     study's), the methods it leaves out, where it prints, the stage it runs once it holds
-    the study (None: the search plan), the workers' ``train`` (tests) and the cost
-    estimate running in the background (None: a stage, or none yet)."""
+    the study (None: the search plan), the workers' ``train`` (tests), the most trials it
+    starts (None: all left) and the cost estimate running in the background (None: a
+    stage, or none yet)."""
 
     spec: StudySpec
     plan: Plan
@@ -136,6 +138,7 @@ class Launch:
     stream: TextIO
     stage: Stage | None
     train: Callable[..., Any] | None
+    max_trials: int | None = None
     estimate: InBackground | None = None
 
     @property
@@ -155,6 +158,7 @@ def launch(
     stream: TextIO | None = None,
     stage: Stage | None = None,
     skip: frozenset[str] = frozenset(),
+    max_trials: int | None = None,
 ) -> int:
     """Run (or resume) the study of a validated ``spec``; return the exit code.
 
@@ -165,10 +169,12 @@ def launch(
     (default: the search plan; ``sweeper confirm``: the confirmation stage); a StorageError
     from it exits 2. ``skip``: methods this launch leaves out (``sweeper launch
     --skip-missing``, ``--only``): their keys are synced like the others, so they stay left
-    in the ledger, and are not run; the plan, and its hash, stay whole. Ctrl-C and SIGTERM
-    raise ``Interrupted`` throughout.
+    in the ledger, and are not run; the plan, and its hash, stay whole. ``max_trials``
+    (``--max-trials``): start at most that many of the trials left, in ``run_order``; the
+    others stay left for a later launch. Ctrl-C and SIGTERM raise ``Interrupted`` throughout.
     """
-    run = Launch(spec, plan, skip, sys.stderr if stream is None else stream, stage, train)
+    stream = sys.stderr if stream is None else stream
+    run = Launch(spec, plan, skip, stream, stage, train, max_trials)
     with stop_on_signals():
         try:
             check_writable(spec.storage_url)
@@ -309,20 +315,28 @@ def _sync_and_drive(run: Launch, store: StudyStore, pool: WorkerPool, beat: Hear
     run = dataclasses.replace(run, plan=plan)
     todo = store.sync(plan.entries, plan.hash)
     skipped = sum(entry.method in skip for entry, _ in todo)
-    todo = [(entry, trial) for entry, trial in todo if entry.method not in skip]
+    todo = sorted(
+        ((entry, trial) for entry, trial in todo if entry.method not in skip),
+        key=lambda item: run_order(item[0]),
+    )
+    later = todo[run.max_trials :] if run.max_trials is not None else []
+    todo = todo[: len(todo) - len(later)]
     random_agent.record_random_agent(spec, store, run.stream)
     total = len(plan.entries)
     run.say(
         f"study {spec.study!r} in {redact(spec.storage_url)}: "
-        f"{total - len(todo) - skipped} of {total} trials done, {len(todo)} to run"
-        f"{skipped_note(run)}"
+        f"{total - len(todo) - len(later) - skipped} of {total} trials done, "
+        f"{len(todo)} to run{skipped_note(run)}"
+        + (f"; {len(later)} more left for a later launch (--max-trials)" if later else "")
     )
     if not todo:
         return 0
     pool.shrink(len(todo))
     estimates = None if run.estimate is None else print_estimate(run)
+    not_now = {entry.key for entry, _ in later}  # not this launch's: not in its display
+    keys = [entry.key for entry in run.runs.entries if entry.key not in not_now]
     progress = LaunchProgress(
-        spec.study, in_spec_order(run.runs.keys(), spec.methods),
+        spec.study, in_spec_order(keys, spec.methods),
         spec.budget.env_steps, run.stream,
         estimates=estimates, workers=len(pool),
     )  # fmt: skip

@@ -51,6 +51,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="run only these methods (comma-separated) in this launch, e.g. one arm of a "
         "study at a time; the others' trials stay left in the study, and the plan is whole",
     )
+    parser.add_argument(
+        "--max-trials",
+        metavar="N",
+        type=positive_int,
+        help="start at most N of the trials left in this launch (round by round, so what is "
+        "done stays paired), e.g. what fits before the machine is gone; the others stay "
+        "left for a later launch",
+    )
 
 
 def only_skip(spec: StudySpec, only: str | None) -> frozenset[str]:
@@ -92,7 +100,7 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
                 return 2
             if skip:
                 print("\n".join(skip_lines(spec, plan, skip)), file=sys.stderr)
-            return launch(spec, plan, skip=skip | left_out)
+            return launch(spec, plan, skip=skip | left_out, max_trials=args.max_trials)
         except KeyboardInterrupt:  # outside the driver loop, which handles its own
             print("\nsweeper launch: stopped", file=sys.stderr)
             return EXIT_INTERRUPTED
