@@ -67,9 +67,17 @@ def test_per_call_times_a_call():
         0.01, rel=0.5, abs=0.01
     )
     calls = []
-    # a warm-up slower than the budget is the answer: one call
+    # a warm-up slower than the budget: one more call, timed
     assert per_call(lambda: calls.append(time.sleep(0.05)), seconds=0.01) >= 0.05
-    assert len(calls) == 1
+    assert len(calls) == 2
+
+
+def test_per_call_leaves_the_warm_up_out():
+    """A first call that costs more (allocations, kernels built once) is not the answer,
+    however slow it is."""
+    durations = iter([0.3, 0.02, 0.02, 0.02, 0.02, 0.02, 0.02])
+    answer = per_call(lambda: time.sleep(next(durations)), min_calls=3, seconds=0.05)
+    assert answer == pytest.approx(0.02, abs=0.015)
 
 
 def _point_config(method: str, **kw) -> TrialConfig:
