@@ -1,7 +1,8 @@
 """The machine a trial runs on, as far as its numbers depend on it.
 
-A trial is bit-exact on one machine (a re-run in a fresh process gives the same curve),
-not across machines: PyTorch's CPU kernels are chosen at run time, ATen's vectorised
+A trial is bit-exact on one machine at one number of torch threads (a re-run in a fresh
+process gives the same curve; more threads split a sum into other parts), not across
+machines: PyTorch's CPU kernels are chosen at run time, ATen's vectorised
 loops by the instruction set it detects and MKL's matrix products by the CPU's vendor as
 well. Measured on fetch_reach_cpu's ``state/0/0`` (MLPs only, so MKL's products are the
 only kernels that matter there): on an AMD EPYC its step-0 final distance is 0.1777445,
@@ -80,7 +81,9 @@ def conv_layout(device: torch.device) -> str:
 def describe(device: torch.device) -> dict[str, str]:
     """What a trial's numbers depend on beyond its code and config: the CPU (``cpu``:
     vendor, family and model number; ``cpu_name``), the instruction set of PyTorch's
-    kernels, PyTorch's version, the conv layout (``conv_layout``) and, on CUDA, the GPU."""
+    kernels, PyTorch's version, the conv layout (``conv_layout``), the torch threads it
+    runs with now (``threads``; a launch's ``--threads-per-trial`` is not in the config's
+    identity) and, on CUDA, the GPU."""
     cpu = _cpu()
     ids = [cpu.get("vendor_id", platform.machine()), cpu.get("cpu family"), cpu.get("model")]
     described = {
@@ -89,6 +92,7 @@ def describe(device: torch.device) -> dict[str, str]:
         "kernels": torch.backends.cpu.get_cpu_capability(),
         "torch": str(torch.__version__),  # a str subclass that torch.load refuses
         "conv_layout": conv_layout(device),
+        "threads": str(torch.get_num_threads()),
     }
     if device.type == "cuda":
         described["gpu"] = torch.cuda.get_device_name(device)

@@ -171,7 +171,8 @@ def test_the_machine_is_described_by_what_its_kernels_depend_on() -> None:
     }
     assert machine.cpu_fields("") == {}
     here = machine.describe(torch.device("cpu"))
-    assert set(here) == {"cpu", "cpu_name", "kernels", "torch", "conv_layout"}
+    assert set(here) == {"cpu", "cpu_name", "kernels", "torch", "conv_layout", "threads"}
+    assert here["threads"] == str(torch.get_num_threads())
     assert here["kernels"] == torch.backends.cpu.get_cpu_capability()
     assert here["torch"] == torch.__version__
     assert here["conv_layout"] == machine.conv_layout(torch.device("cpu"))

@@ -5,11 +5,17 @@ from __future__ import annotations
 
 import math
 
-from sweeper.run.cli_rerun import difference_at, first_difference, machine_lines, recorded_layout
+from sweeper.run.cli_rerun import (
+    difference_at,
+    first_difference,
+    machine_lines,
+    recorded_layout,
+    recorded_threads,
+)
 
 CURVE = {"step": [0, 100], "success_rate": [0.0, 0.5], "final_distance": [0.3, math.nan]}
 HERE = {"cpu": "AuthenticAMD 26 2", "cpu_name": "AMD EPYC", "kernels": "AVX512", "torch": "2",
-        "conv_layout": "channels_last"}  # fmt: skip
+        "conv_layout": "channels_last", "threads": "1"}  # fmt: skip
 
 
 def test_curves_are_compared_float_for_float_nan_equal_to_nan():
@@ -42,7 +48,7 @@ def test_the_machines_say_whether_the_same_curve_is_to_be_expected():
     other = machine_lines([{"from_step": 0, **intel}, {"from_step": 5000, **HERE}], HERE)
     assert other[0] == (
         "recorded on: Xeon (GenuineIntel 6 143), kernels AVX512, torch 2, conv layout "
-        "channels_last (from step 0)"
+        "channels_last, 1 thread (from step 0)"
     )
     assert other[-1].startswith("another machine (or unknown)")
     resumed = machine_lines([{"from_step": 5000, **HERE}], HERE)  # an older checkpoint's runs
@@ -53,6 +59,13 @@ def test_the_machines_say_whether_the_same_curve_is_to_be_expected():
     assert machine_lines([{"from_step": 0, **older}], HERE)[-1].startswith("the same machine")
     nchw = {**HERE, "conv_layout": "nchw"}
     assert machine_lines([{"from_step": 0, **older}], nchw)[-1].startswith("another machine")
+    # the same CPU at 2 threads splits its sums otherwise; before threads were recorded: the
+    # re-run's (the spec's)
+    two = {"from_step": 0, **HERE, "threads": "2"}
+    assert machine_lines([two], HERE)[-1].startswith("another machine")
+    assert machine_lines([two], {**HERE, "threads": "2"})[0].endswith(", 2 threads (from step 0)")
+    unthreaded = {k: v for k, v in HERE.items() if k != "threads"}
+    assert machine_lines([{"from_step": 0, **unthreaded}], HERE)[-1].startswith("the same")
     unknown = machine_lines(None, HERE)
     assert unknown[0].startswith("recorded on: not recorded")
 
@@ -63,3 +76,11 @@ def test_a_rerun_takes_the_layout_of_the_trial_s_first_recorded_run():
     older = {"from_step": 0, **{k: v for k, v in HERE.items() if k != "conv_layout"}}
     assert recorded_layout([older]) == "channels_last"  # before layouts were recorded
     assert recorded_layout(None) == "channels_last"  # before machines were recorded
+
+
+def test_a_rerun_takes_the_threads_of_the_trial_s_first_recorded_run():
+    two = {"from_step": 0, **HERE, "threads": "2"}
+    assert recorded_threads([two, {"from_step": 5000, **HERE}], spec_threads=1) == 2
+    older = {"from_step": 0, **{k: v for k, v in HERE.items() if k != "threads"}}
+    assert recorded_threads([older], spec_threads=3) == 3  # before threads were recorded
+    assert recorded_threads(None, spec_threads=1) == 1

@@ -111,6 +111,13 @@ def recorded_layout(recorded: list[dict[str, Any]] | None) -> str:
     return (recorded or [{}])[0].get("conv_layout", OLDER_LAYOUT)
 
 
+def recorded_threads(recorded: list[dict[str, Any]] | None, spec_threads: int) -> int:
+    """The torch threads of the trial's first recorded run (``spec_threads``, the spec's
+    ``execution.threads_per_trial``, for one recorded before threads were): the number a
+    re-run must use to split its sums the same way."""
+    return int((recorded or [{}])[0].get("threads", spec_threads))
+
+
 def machine_lines(recorded: list[dict[str, Any]] | None, here: dict[str, Any]) -> list[str]:
     """The machines the trial's runs were recorded on, this one, and what follows."""
     recorded = recorded or []
@@ -121,7 +128,8 @@ def machine_lines(recorded: list[dict[str, Any]] | None, here: dict[str, Any]) -
         lines.append(f"the runs before step {recorded[0]['from_step']} were not recorded")
     lines.append(f"this machine: {describe(here)}")
     whole = bool(recorded) and recorded[0]["from_step"] == 0
-    was = [{"conv_layout": OLDER_LAYOUT, **m} for m in recorded]
+    # a record from before layouts (threads) were recorded: channels-last (the re-run's)
+    was = [{"conv_layout": OLDER_LAYOUT, "threads": here.get("threads"), **m} for m in recorded]
     if whole and all({k: v for k, v in m.items() if k != "from_step"} == here for m in was):
         lines.append("the same machine: the curve should be the recorded one")
     else:
@@ -171,8 +179,10 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     )
     videos: dict[str, bytes] = {}
     machines = trial_attr(trial, "machines")
-    # the recorded layout, not this CPU's choice: the layout orders the convolutions' sums
+    # the recorded layout and threads, not this CPU's choice or the spec's: both order sums
     layout = recorded_layout(machines)
+    config = dataclasses.replace(config, threads=recorded_threads(machines, config.threads))
+    torch.set_num_threads(config.threads)
     here = {**this_machine(resolve_device(config.device)), "conv_layout": layout}
     print(f"study {spec.study!r} in {redact(spec.storage_url)}: {args.key} (trial {trial.number})")
     print("\n".join(machine_lines(machines, here)))
@@ -197,7 +207,6 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
             if args.restore_videos:
                 raise _AnotherCurve(difference)
 
-    torch.set_num_threads(config.threads)
     film = videos.__setitem__ if args.restore_videos else None
     try:
         with mock.patch.dict(os.environ, {LAYOUT_VARIABLE: layout}):

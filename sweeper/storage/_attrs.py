@@ -48,13 +48,15 @@ def curve_of(trial: FrozenTrial) -> dict[str, list] | None:
 
 
 def describe_machine(machine: Mapping[str, Any]) -> str:
-    """One line: CPU name and id, kernels, torch, conv layout, GPU (a record of
-    ``agent.machine``; a field older records lack is left out)."""
+    """One line: CPU name and id, kernels, torch, conv layout, torch threads, GPU (a record
+    of ``agent.machine``; a field older records lack is left out)."""
     layout = f", conv layout {machine['conv_layout']}" if "conv_layout" in machine else ""
+    threads = machine.get("threads")
+    threads = f", {threads} thread{'' if threads == '1' else 's'}" if threads else ""
     gpu = f", GPU {machine['gpu']}" if "gpu" in machine else ""
     return (
         f"{machine.get('cpu_name', '?')} ({machine.get('cpu', '?')}), kernels "
-        f"{machine.get('kernels', '?')}, torch {machine.get('torch', '?')}{layout}{gpu}"
+        f"{machine.get('kernels', '?')}, torch {machine.get('torch', '?')}{layout}{threads}{gpu}"
     )
 
 
