@@ -52,6 +52,13 @@ def _cpu() -> dict[str, str]:
     return cpu_fields(_cpuinfo())
 
 
+def cpu_id() -> str:
+    """The CPU as a trial's record names it (``describe``'s ``cpu``): vendor, family, model."""
+    cpu = _cpu()
+    ids = [cpu.get("vendor_id", platform.machine()), cpu.get("cpu family"), cpu.get("model")]
+    return " ".join(i for i in ids if i)
+
+
 def native_bf16() -> list[str]:
     """The CPU's native bf16 instructions among AMX-BF16 and AVX512-BF16 (the flags
     ``/proc/cpuinfo`` lists; empty: bf16 is emulated, slower than fp32)."""
@@ -84,11 +91,9 @@ def describe(device: torch.device) -> dict[str, str]:
     kernels, PyTorch's version, the conv layout (``conv_layout``), the torch threads it
     runs with now (``threads``; a launch's ``--threads-per-trial`` is not in the config's
     identity) and, on CUDA, the GPU."""
-    cpu = _cpu()
-    ids = [cpu.get("vendor_id", platform.machine()), cpu.get("cpu family"), cpu.get("model")]
     described = {
-        "cpu": " ".join(i for i in ids if i),
-        "cpu_name": cpu.get("model name", platform.processor()),
+        "cpu": cpu_id(),
+        "cpu_name": _cpu().get("model name", platform.processor()),
         "kernels": torch.backends.cpu.get_cpu_capability(),
         "torch": str(torch.__version__),  # a str subclass that torch.load refuses
         "conv_layout": conv_layout(device),

@@ -11,7 +11,7 @@ from conftest import CI_SPEC
 from agent.calibrate import Calibration, TrialCosts, per_call
 from agent.config import SACConfig, TrialConfig
 from sweeper.plan._estimate import format_duration, local_workers, makespan
-from sweeper.storage import measured_seconds
+from sweeper.storage import finished, measured_seconds
 
 
 @pytest.mark.parametrize(
@@ -51,6 +51,38 @@ def test_local_workers_are_bounded_by_the_cores():
 
 def test_measured_seconds_are_the_mean_per_method():
     assert measured_seconds([("a", 10.0), ("a", 20.0), ("b", 5.0)]) == {"a": 15.0, "b": 5.0}
+
+
+def test_only_trials_measured_on_this_cpu_at_these_threads_are_taken():
+    """A trial's seconds say little of another CPU kind or thread count: ``finished`` with
+    ``here`` keeps those recorded with both in every run (one before threads were: not)."""
+    import optuna
+    from optuna.trial import TrialState
+
+    zen4 = {"cpu": "AuthenticAMD 25 17", "cpu_name": "AMD EPYC", "threads": "1"}
+
+    def trial(key: str, seconds: float, *machines: dict) -> optuna.trial.FrozenTrial:
+        return optuna.trial.create_trial(
+            state=TrialState.COMPLETE, value=0.5,
+            user_attrs={"key": key, "seconds": seconds},
+            system_attrs={"machines": [{"from_step": 0, **m} for m in machines]},
+        )  # fmt: skip
+
+    trials = [
+        trial("pixel/0/0", 100.0, zen4),
+        trial("pixel/0/1", 300.0, zen4, {**zen4, "threads": "2"}),  # resumed at 2 threads
+        trial("conv/0/0", 50.0, {**zen4, "cpu": "GenuineIntel 6 167"}),
+        trial("conv/0/1", 70.0, {k: v for k, v in zen4.items() if k != "threads"}),
+        trial("conv/1/0", 90.0, zen4),
+    ]
+    for index, t in enumerate(trials):
+        t.number = index
+    keys = [t.user_attrs["key"] for t in trials]
+    here = {"cpu": "AuthenticAMD 25 17", "threads": "1"}
+    done, measured = finished(trials, keys, here)
+    assert done == set(keys)
+    assert measured == {"pixel": 100.0, "conv": 90.0}
+    assert finished(trials, keys)[1] == {"pixel": 200.0, "conv": 70.0}  # every machine
 
 
 def test_trial_costs_add_up_by_hand():

@@ -24,6 +24,7 @@ from sweeper.plan._estimate import (
     InBackground,
     TrialEstimate,
     format_duration,
+    machine_at,
     makespan,
     summary_lines,
 )
@@ -47,6 +48,7 @@ __all__ = [
     "format_duration",
     "fresh_seeds",
     "in_spec_order",
+    "machine_at",
     "makespan",
     "run_order",
     "summary_lines",

@@ -1,7 +1,8 @@
 """What a plan will cost before it is spent: each trial's wall time and the study's.
 
 A trial's seconds come from the study's own finished trials of the same method when it
-has some (the mean of their recorded ``seconds``), else from a calibration on this machine
+has some run on this CPU kind at the same threads (the mean of their recorded ``seconds``),
+else from a calibration on this machine
 (``agent.calibrate``: a few seconds of each part of a trial). The study's wall time is the
 trials left, handed in the driver's run order to ``workers`` concurrent slots, each to the
 first free one (the driver's own scheduling).
@@ -58,6 +59,15 @@ def makespan(durations: Iterable[float], workers: int, busy: Sequence[float] = (
         heapq.heappush(free, start + duration)
         end = max(end, start + duration)
     return end
+
+
+def machine_at(threads: int) -> dict[str, str]:
+    """The fields of a trial's machine record (``agent.machine.describe``) its seconds
+    depend on most, for this machine at ``threads`` torch threads a trial: a study's trials
+    measured elsewhere say little of a trial here (``sweeper.storage.finished``)."""
+    from agent.machine import cpu_id  # loads torch: only once an estimate is made
+
+    return {"cpu": cpu_id(), "threads": str(threads)}
 
 
 def local_workers(max_concurrent: int, threads_per_trial: int, cores: int | None = None) -> int:

@@ -23,6 +23,7 @@ from sweeper.plan._estimate import (
     estimate_trials,
     format_duration,
     halving_seconds,
+    machine_at,
     summary_lines,
 )
 from sweeper.plan._halving import env_steps_spent
@@ -191,7 +192,8 @@ def run(spec: StudySpec, args: argparse.Namespace, stream: TextIO | None = None)
             done, measured = set(), {}
             if not isinstance(store, NoStudy):
                 check_plan(spec.study, store.attrs, plan.hash)
-                done, measured = finished(store.trials(), plan.keys())
+                here = machine_at(spec.execution.threads_per_trial)
+                done, measured = finished(store.trials(), plan.keys(), here)
     except ValueError as e:  # StorageError, a plan the spec cannot give
         print(f"sweeper plan: {e}", file=sys.stderr)
         return 2

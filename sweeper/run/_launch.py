@@ -39,6 +39,7 @@ from sweeper.plan import (
     TrialEstimate,
     build_plan,
     in_spec_order,
+    machine_at,
     run_order,
     summary_lines,
 )
@@ -192,7 +193,8 @@ def launch(
             )
             return 0
         # the calibration runs while Ray and the workers start
-        run.estimate = None if stage is not None else start_estimate(run.runs, study)
+        threads = spec.execution.threads_per_trial
+        run.estimate = None if stage is not None else start_estimate(run.runs, study, threads)
         try:
             return _start_ray_and_launch(run)
         finally:  # a launch that ends first (busy, interrupted, ...) ends the calibration
@@ -391,9 +393,12 @@ def skipped_note(run: Launch) -> str:
     return f"; {methods} not run now ({plural(skipped, 'trial')}, left for a later launch)"
 
 
-def start_estimate(plan: Plan, study: tuple[list[Any], dict[str, Any]] | None) -> InBackground:
-    """Start estimating the trials of ``plan`` not done in ``study`` (``read_study``)."""
-    done, measured = finished(study[0] if study else [], plan.keys())
+def start_estimate(
+    plan: Plan, study: tuple[list[Any], dict[str, Any]] | None, threads: int
+) -> InBackground:
+    """Start estimating the trials of ``plan`` not done in ``study`` (``read_study``), at
+    ``threads`` a trial (trials measured on another CPU or at other threads are not used)."""
+    done, measured = finished(study[0] if study else [], plan.keys(), machine_at(threads))
     left = [e for e in plan.entries if e.key not in done]
     return InBackground(left, measured, CALIBRATION_SECONDS)
 

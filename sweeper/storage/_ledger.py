@@ -16,6 +16,7 @@ from enum import StrEnum
 from typing import TYPE_CHECKING, Any
 
 from agent.config import Outcome
+from sweeper.storage._attrs import trial_attr
 
 if TYPE_CHECKING:
     from optuna.trial import FrozenTrial
@@ -124,15 +125,32 @@ def measured_seconds(trials: Iterable[tuple[str, float]]) -> dict[str, float]:
 
 
 def finished(
-    trials: Iterable[FrozenTrial], keys: Iterable[str]
+    trials: Iterable[FrozenTrial], keys: Iterable[str], here: Mapping[str, str] | None = None
 ) -> tuple[set[str], dict[str, float]]:
     """(the ``keys`` done, per method the mean seconds of its done trials) of a study's
-    ``trials``, by each key's current trial."""
+    ``trials``, by each key's current trial. ``here`` (``{"cpu": ..., "threads": ...}``, as
+    ``agent.machine.describe`` records them): only the seconds of trials every run of which
+    was recorded with that CPU and those threads count (the project's CPU kinds run one
+    trial up to twice as fast as one another; a trial at 2 threads 1.6 times as fast)."""
     current = current_trials(trials)
     done = {k for k in keys if k in current and current[k].state.name == "COMPLETE"}
     seconds = [
         (k.split("/")[0], float(current[k].user_attrs["seconds"]))
         for k in sorted(done)
-        if current[k].user_attrs.get("seconds")
+        if current[k].user_attrs.get("seconds") and (here is None or ran_on(current[k], here))
     ]
     return done, measured_seconds(seconds)
+
+
+def ran_on(trial: FrozenTrial, here: Mapping[str, str]) -> bool:
+    """Whether every run of ``trial`` was recorded with ``here``'s fields (a trial recorded
+    before a field was, or without machines, was not)."""
+    machines = trial_attr(trial, "machines")
+    return (
+        isinstance(machines, list)
+        and bool(machines)
+        and all(
+            isinstance(run, Mapping) and all(run.get(k) == v for k, v in here.items())
+            for run in machines
+        )
+    )
