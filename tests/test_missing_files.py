@@ -299,6 +299,7 @@ def test_max_trials_starts_that_many_round_by_round_and_a_later_launch_the_rest(
     err = capsys.readouterr().err
     assert "0 of 4 trials done, 2 to run; 2 more left for a later launch (--max-trials)" in err
     assert "some: 2/2 trials done" in err  # the display counts this launch's trials
+    assert "estimate: left: 2 of 4 trials" in err  # so does the estimate
     study = optuna.load_study(study_name="some", storage=open_storage(load_spec(spec).storage_url))
 
     def done() -> list[str]:

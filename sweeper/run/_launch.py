@@ -334,8 +334,8 @@ def _sync_and_drive(run: Launch, store: StudyStore, pool: WorkerPool, beat: Hear
     if not todo:
         return 0
     pool.shrink(len(todo))
-    estimates = None if run.estimate is None else print_estimate(run)
-    not_now = {entry.key for entry, _ in later}  # not this launch's: not in its display
+    not_now = {entry.key for entry, _ in later}  # not this launch's: not in its estimate
+    estimates = None if run.estimate is None else print_estimate(run, not_now)
     keys = [entry.key for entry in run.runs.entries if entry.key not in not_now]
     progress = LaunchProgress(
         spec.study, in_spec_order(keys, spec.methods),
@@ -403,14 +403,16 @@ def start_estimate(
     return InBackground(left, measured, CALIBRATION_SECONDS)
 
 
-def print_estimate(run: Launch) -> dict[str, TrialEstimate] | None:
-    """Print what the trials left will cost (``sweeper.plan``'s estimate: from the study's
-    finished trials, else a quick calibration) before they start; return the estimates, or
+def print_estimate(run: Launch, not_now: set[str]) -> dict[str, TrialEstimate] | None:
+    """Print what the trials this launch runs will cost (``sweeper.plan``'s estimate: from
+    the study's finished trials, else a quick calibration) before they start, those of
+    ``not_now`` (``--max-trials``) left out as ``--only``'s are; return the estimates, or
     None when they could not be made (the launch goes on without them)."""
     estimates = run.estimate.result()
     if isinstance(estimates, BaseException):  # a calibration that fails must not stop a study
         run.say(f"sweeper launch: no estimate: {type(estimates).__name__}: {estimates}")
         return None
+    estimates = {key: e for key, e in estimates.items() if key not in not_now}
     entries = run.plan.entries
     done = {e.key for e in entries if e.key not in estimates}
     lines = summary_lines(entries, done, estimates, run.spec.execution, run.estimate.seconds)
