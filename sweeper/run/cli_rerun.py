@@ -128,7 +128,7 @@ def machine_lines(recorded: list[dict[str, Any]] | None, here: dict[str, Any]) -
         lines.append(f"the runs before step {recorded[0]['from_step']} were not recorded")
     lines.append(f"this machine: {describe(here)}")
     whole = bool(recorded) and recorded[0]["from_step"] == 0
-    # a record from before layouts (threads) were recorded: channels-last (the re-run's)
+    # a record from before layouts or threads were recorded: channels-last, the re-run's threads
     was = [{"conv_layout": OLDER_LAYOUT, "threads": here.get("threads"), **m} for m in recorded]
     if whole and all({k: v for k, v in m.items() if k != "from_step"} == here for m in was):
         lines.append("the same machine: the curve should be the recorded one")
