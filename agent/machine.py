@@ -52,9 +52,10 @@ def _cpu() -> dict[str, str]:
     return cpu_fields(_cpuinfo())
 
 
-def cpu_id() -> str:
-    """The CPU as a trial's record names it (``describe``'s ``cpu``): vendor, family, model."""
-    cpu = _cpu()
+def cpu_id(cpu: dict[str, str] | None = None) -> str:
+    """The CPU as a trial's record names it (``describe``'s ``cpu``): vendor, family, model
+    (of ``cpu``, ``cpu_fields``' answer, read here when not given)."""
+    cpu = _cpu() if cpu is None else cpu
     ids = [cpu.get("vendor_id", platform.machine()), cpu.get("cpu family"), cpu.get("model")]
     return " ".join(i for i in ids if i)
 
@@ -91,9 +92,10 @@ def describe(device: torch.device) -> dict[str, str]:
     kernels, PyTorch's version, the conv layout (``conv_layout``), the torch threads it
     runs with now (``threads``; a launch's ``--threads-per-trial`` is not in the config's
     identity) and, on CUDA, the GPU."""
+    cpu = _cpu()
     described = {
-        "cpu": cpu_id(),
-        "cpu_name": _cpu().get("model name", platform.processor()),
+        "cpu": cpu_id(cpu),
+        "cpu_name": cpu.get("model name", platform.processor()),
         "kernels": torch.backends.cpu.get_cpu_capability(),
         "torch": str(torch.__version__),  # a str subclass that torch.load refuses
         "conv_layout": conv_layout(device),
