@@ -16,8 +16,8 @@ claim:
   LINEAR, CONV): from the paired probabilities of improvement, by ``judge``.
 
 Every statistic comes from ``sweeper aggregate``'s own tables (the same seed), so the
-figures match the study's ``auc_table.csv`` and ``improvement.csv``. A claim resting on
-fewer than 5 trials or pairs says so.
+figures match the study's ``auc_table.csv`` and ``improvement.csv``. A "solves" claim
+on fewer than 5 trials is "not settled"; a comparison on fewer than 5 pairs says so.
 
 With the budget studies (default the published databases of
 ``studies/fetch_reach_budget.yaml`` and of its follow-up on more seeds,
@@ -25,7 +25,7 @@ With the budget studies (default the published databases of
 two "solves" claims are judged at every gradient budget the studies ran, joined as
 ``sweeper aggregate`` joins them (``sweeper.results._budget``: the same configurations,
 every seed a setting ran), each with its condition: "PIXEL solves FetchReach: holds at 1/4
-of A.1's gradient samples, 15k steps, 4 trials". The rule (``solved_at``) is printed with
+of A.1's gradient samples, 15k steps, 8 trials". The rule (``solved_at``) is printed with
 them.
 """
 
@@ -65,7 +65,7 @@ def solved_at(final_iqm: float, low: float, random: float | None) -> bool:
     return final_iqm >= SOLVED and (random is None or low > random)
 
 
-def rule_text(random: float | None) -> str:
+def rule_text(random: float | None, min_trials: int) -> str:
     """``solved_at`` in words, for the output."""
     floor = (
         ""
@@ -77,7 +77,8 @@ def rule_text(random: float | None) -> str:
     )
     return (
         f"Rule: a claim holds at a setting when the IQM final success rate (the last "
-        f"evaluation) is >= {SOLVED}{floor}; otherwise it does not hold there."
+        f"evaluation) is >= {SOLVED}{floor}; otherwise it does not hold there; on fewer "
+        f"than {min_trials} trials it is not settled."
     )
 
 
@@ -143,23 +144,24 @@ def budget_claims(frame, budgets: Sequence[tuple[str, str]], seed: int = 0) -> l
     join = join_studies(studies)
     table = budget_table(join, seed=seed)
     random = random_success(frame)
-    lines = [
-        f"Each claim at each gradient budget ({' + '.join(join.studies)}). {rule_text(random)}"
-    ]
+    rule = rule_text(random, MIN_RELIABLE)
+    lines = [f"Each claim at each gradient budget ({' + '.join(join.studies)}). {rule}"]
     lines += missing
     for left, problems in join.left_out.items():
         lines.append(f"{left} is left out: its configurations differ ({'; '.join(problems)}).")
     for encoder in SOLVERS:
         for row in table[table["encoder"] == encoder].itertuples():
             held = solved_at(row.final_success_iqm, row.final_success_iqm_low, random)
+            verdict = "holds" if held else "does not hold"
             evidence = (
                 f"IQM final success {_fmt(row.final_success_iqm, 2)} "
                 f"[{_fmt(row.final_success_iqm_low, 2)}, {_fmt(row.final_success_iqm_high, 2)}]"
             )
-            if row.n < MIN_RELIABLE:
-                evidence += f"; fewer than {MIN_RELIABLE} trials, not reliable"
+            if row.n < MIN_RELIABLE:  # an interval over so few trials says little
+                verdict = "not settled"
+                evidence += f"; fewer than {MIN_RELIABLE} trials"
             lines.append(
-                f"- {encoder.upper()} solves FetchReach: {'holds' if held else 'does not hold'} "
+                f"- {encoder.upper()} solves FetchReach: {verdict} "
                 f"at {condition(row.setting, join.env_steps, row.n)} ({evidence})"
             )
     return lines
@@ -254,7 +256,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         verdict = "holds" if value >= SOLVED else "does not hold here"
         n = int(table.loc[method, "n"])
         if n < MIN_RELIABLE:
-            verdict += f" on {n} trial{'s' if n > 1 else ''}, fewer than {MIN_RELIABLE}"
+            verdict = f"not settled on {n} trial{'s' if n > 1 else ''}, fewer than {MIN_RELIABLE}"
         return f"{verdict} (IQM final success {value:.2f}, bar {SOLVED})"
 
     def ahead(pairs: Sequence[tuple[str, str]]) -> str:
