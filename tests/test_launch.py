@@ -124,6 +124,13 @@ def test_launch_ci_end_to_end_then_status_then_a_relaunch_reruns_nothing(
     out = capsys.readouterr().out
     assert "the same machine: the curve should be the recorded one" in out
     assert "the same curve: every metric at all 4 steps is the recorded float" in out
+    # at other threads than the recorded ones it is another machine (sums split otherwise)
+    assert cli.main(["rerun", str(CI_SPEC), "pixel/0/0", "--threads", "2"]) in (0, 1)
+    out = capsys.readouterr().out
+    assert ", 2 threads\nanother machine (or unknown)" in out
+    with pytest.raises(SystemExit):
+        cli.main(["rerun", str(CI_SPEC), "pixel/0/0", "--threads", "0"])
+    assert "--threads: must be an integer >= 1, got 0" in capsys.readouterr().err
     assert [(t.number, t.datetime_complete) for t in load(url).get_trials()] == before
 
     # published while a driver holds it (this process poses as one): the copy is not driven

@@ -64,8 +64,12 @@ def test_the_machines_say_whether_the_same_curve_is_to_be_expected():
     two = {"from_step": 0, **HERE, "threads": "2"}
     assert machine_lines([two], HERE)[-1].startswith("another machine")
     assert machine_lines([two], {**HERE, "threads": "2"})[0].endswith(", 2 threads (from step 0)")
+    # ... and one from before threads were recorded may have run at other threads: said so
     unthreaded = {k: v for k, v in HERE.items() if k != "threads"}
-    assert machine_lines([{"from_step": 0, **unthreaded}], HERE)[-1].startswith("the same")
+    assert machine_lines([{"from_step": 0, **unthreaded}], HERE)[-1].startswith(
+        "the same machine if the trial ran at 1 torch thread, as this re-run does"
+    )
+    assert machine_lines([{"from_step": 0, **unthreaded}], nchw)[-1].startswith("another")
     unknown = machine_lines(None, HERE)
     assert unknown[0].startswith("recorded on: not recorded")
 

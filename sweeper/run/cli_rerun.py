@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 from unittest import mock
 
 from sweeper.plan import CONFIRM, PlanEntry, build_plan, confirm_plan
-from sweeper.spec import plural
+from sweeper.spec import plural, positive_int
 from sweeper.storage import (
     ArtifactStore,
     NoStudy,
@@ -63,6 +63,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="film the trial again and, if its curve is the recorded one exactly, write the "
         "videos its record names that the study's artifact store is missing",
+    )
+    parser.add_argument(
+        "--threads",
+        type=positive_int,
+        metavar="N",
+        help="torch threads for the re-run (default: those of the trial's record; for a trial "
+        "recorded before threads were, the spec's execution.threads_per_trial)",
     )
 
 
@@ -128,10 +135,17 @@ def machine_lines(recorded: list[dict[str, Any]] | None, here: dict[str, Any]) -
         lines.append(f"the runs before step {recorded[0]['from_step']} were not recorded")
     lines.append(f"this machine: {describe(here)}")
     whole = bool(recorded) and recorded[0]["from_step"] == 0
-    # a record from before layouts or threads were recorded: channels-last, the re-run's threads
+    # a record from before layouts or threads were recorded: channels-last, threads unknown
     was = [{"conv_layout": OLDER_LAYOUT, "threads": here.get("threads"), **m} for m in recorded]
+    unthreaded = any("threads" not in m for m in recorded)
     if whole and all({k: v for k, v in m.items() if k != "from_step"} == here for m in was):
-        lines.append("the same machine: the curve should be the recorded one")
+        if unthreaded:
+            threads = plural(int(here["threads"]), "torch thread")
+            lines.append(f"the same machine if the trial ran at {threads}, as this re-run does "
+                         "(its threads were not recorded; --threads sets the re-run's): then "
+                         "the curve should be the recorded one")  # fmt: skip
+        else:
+            lines.append("the same machine: the curve should be the recorded one")
     else:
         lines.append("another machine (or unknown): PyTorch's kernels round differently there, "
                      "so the curve may differ (agent/machine.py)")  # fmt: skip
@@ -181,7 +195,8 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     machines = trial_attr(trial, "machines")
     # the recorded layout and threads, not this CPU's choice or the spec's: both order sums
     layout = recorded_layout(machines)
-    config = dataclasses.replace(config, threads=recorded_threads(machines, config.threads))
+    threads = args.threads or recorded_threads(machines, config.threads)
+    config = dataclasses.replace(config, threads=threads)
     torch.set_num_threads(config.threads)
     here = {**this_machine(resolve_device(config.device)), "conv_layout": layout}
     print(f"study {spec.study!r} in {redact(spec.storage_url)}: {args.key} (trial {trial.number})")
