@@ -193,7 +193,8 @@ def run(spec: StudySpec, args: argparse.Namespace) -> int:
     )
     videos: dict[str, bytes] = {}
     machines = trial_attr(trial, "machines")
-    # the recorded layout and threads, not this CPU's choice or the spec's: both order sums
+    # the recorded layout and threads (unless --threads), not this CPU's choice or the
+    # spec's: both order sums
     layout = recorded_layout(machines)
     threads = args.threads or recorded_threads(machines, config.threads)
     config = dataclasses.replace(config, threads=threads)
