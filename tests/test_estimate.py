@@ -220,6 +220,29 @@ def test_the_launch_eta_knows_the_seed_phase_and_follows_the_pace():
     assert progress.lines(now=210.0)[0].endswith("ETA 14 min")
 
 
+def test_the_launch_eta_counts_the_start_up_and_runs_down_between_reports():
+    """A trial reports only at its evaluations, minutes apart at 1/2 of A.1: the pace is
+    taken at its reports, with its start-up, and between them the ETA runs down with the
+    clock (it used to grow: a 2.5 h trial showed "ETA 1 d 6 h" eight minutes in)."""
+    from agent.calibrate import TrialCosts
+    from sweeper.plan._estimate import TrialEstimate
+    from sweeper.run._progress import LaunchProgress
+
+    config = TrialConfig(total_steps=15000, seed_steps=1000, eval_every=1000, eval_episodes=1)
+    costs = TrialCosts(setup=100.0, seed_step=0.1, train_step=0.5, eval_step=0.0)  # 7,200 s
+    estimates = {"a/0/0": TrialEstimate(costs.seconds(config), "calibrated", config, costs)}
+    progress = LaunchProgress("s", ["a/0/0"], 15000, estimates=estimates)
+    progress.set_state("a/0/0", "running")
+    assert progress.eta(now=0.0)[1] == pytest.approx(7200)
+    assert progress.eta(now=150.0)[1] == pytest.approx(7050)
+    progress.set_step("a/0/0", 1000)  # start-up and seed steps took what was predicted
+    assert progress.eta(now=200.0)[1] == pytest.approx(7000)
+    assert progress.eta(now=700.0)[1] == pytest.approx(6500)
+    progress.set_step("a/0/0", 2000)  # 1,000 steps took 1,000 s: twice the prediction
+    assert progress.eta(now=1200.0)[1] == pytest.approx(6500 * 1200 / 700)
+    assert progress.eta(now=1300.0)[1] == pytest.approx(6500 * 1200 / 700 - 100)
+
+
 def test_a_resumed_trial_s_steps_before_its_checkpoint_are_not_the_launch_s_pace():
     """A trial resumed from its checkpoint at step 12,000 first reports its curve up to
     there again: neither the rate nor the pace counts those steps (they made a relaunched

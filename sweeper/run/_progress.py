@@ -73,9 +73,18 @@ class LaunchProgress:
         # key's step it has counted up to (a resumed trial starts at its checkpoint's)
         self._advanced, self._predicted = 0.0, 0.0
         self._at: dict[str, int] = {}
+        # running keys whose start-up (envs, encoder, the step-0 evaluation) is not counted yet
+        self._starting: set[str] = set()
         # (time, env steps done, predicted seconds done) when the clock started
         self._start: tuple[float, float, float] | None = None
-        self._last, self._busy = 0.0, 0.0  # the last eta() call; trial-seconds since start
+        # A trial reports only at its evaluations, minutes apart for a long one: the pace
+        # is the trial-seconds up to each key's last report over the predicted seconds
+        # reported, and a running key's clock restarts at its report (``_since``). Starts
+        # and reports are timed at the next eta() call.
+        self._busy = 0.0
+        self._since: dict[str, float] = {}
+        self._started: set[str] = set()
+        self._reported: set[str] = set()
         self._last_draw = -float("inf")
         self._drawn_lines = 0
 
@@ -87,6 +96,8 @@ class LaunchProgress:
         self.states[key] = STATES[STATES.index(state)]
         if state == KeyStatus.RUNNING:
             self._at[key] = self.steps[key] = from_step
+            self._starting.add(key)
+            self._started.add(key)
         elif state == Outcome.COMPLETED:
             self._advance(key, self.env_steps)
         elif state == KeyStatus.LEFT:
@@ -107,7 +118,11 @@ class LaunchProgress:
         estimate = (self.estimates or {}).get(key)
         if estimate is not None:
             self._predicted += estimate.until(step) - estimate.until(at)
+            if key in self._starting:  # the wall time to this report includes the start-up
+                self._predicted += estimate.until(0)
+        self._starting.discard(key)
         self._at[key] = step
+        self._reported.add(key)
 
     def work(self) -> float:
         """Env steps done so far, over all keys (those done before this launch too)."""
@@ -124,34 +139,38 @@ class LaunchProgress:
         unknown).
 
         With estimates: the trials left handed to the workers (``makespan``), the running
-        ones holding theirs, scaled by how much slower (or faster) than predicted this
-        launch has run once it has done ``MIN_PACED_WORK`` predicted seconds of work."""
+        ones holding theirs less the time since their last report, scaled by how much
+        slower (or faster) than predicted this launch ran up to its last report once that
+        is ``MIN_PACED_WORK`` predicted seconds of work."""
         if self._start is None:
             self._start = (now, self._advanced, self._predicted)
-            self._last = now
-        running = sum(state == KeyStatus.RUNNING for state in self.states.values())
-        self._busy += running * (now - self._last)  # seconds of trials running, summed
-        self._last = now
+        self._since.update(dict.fromkeys(self._started, now))
+        for key in self._reported:
+            self._busy += now - self._since.get(key, self._start[0])
+            self._since[key] = now
+        self._started.clear()
+        self._reported.clear()
         elapsed, done = now - self._start[0], self._advanced - self._start[1]
         rate = done / elapsed if elapsed > 0 else 0.0
         if self.estimates is None:
             remaining = self.env_steps * len(self.states) - self.work()
             return rate, (remaining / rate if rate > 0 else None)
+        predicted_done = self._predicted - self._start[2]
+        paced = predicted_done >= MIN_PACED_WORK and self._busy > 0
+        pace = self._busy / predicted_done if paced else 1.0
         busy, left = [], []
         for key, state in self.states.items():
             estimate = self.estimates.get(key)
             if estimate is None:
                 continue
             if state == KeyStatus.RUNNING:
-                busy.append(max(0.0, estimate.seconds - estimate.until(self.steps.get(key, 0))))
+                rest = estimate.seconds - estimate.until(self._at.get(key, 0))
+                if key in self._starting:
+                    rest += estimate.until(0)
+                busy.append(max(0.0, rest * pace - (now - self._since.get(key, now))))
             elif state == KeyStatus.LEFT:
-                left.append(estimate.seconds)
-        seconds = makespan(left, self.workers, busy[: self.workers])
-        predicted_done = self._predicted - self._start[2]
-        if predicted_done >= MIN_PACED_WORK and self._busy > 0:
-            # the pace: the workers' wall time so far over the predicted seconds they did
-            seconds *= self._busy / predicted_done
-        return rate, seconds
+                left.append(estimate.seconds * pace)
+        return rate, makespan(left, self.workers, busy[: self.workers])
 
     def lines(self, now: float) -> list[str]:
         """The display: a summary line, then one line per method."""
