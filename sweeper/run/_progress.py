@@ -83,7 +83,6 @@ class LaunchProgress:
         # and reports are timed at the next eta() call.
         self._busy = 0.0
         self._since: dict[str, float] = {}
-        self._started: set[str] = set()
         self._reported: set[str] = set()
         self._last_draw = -float("inf")
         self._drawn_lines = 0
@@ -97,7 +96,7 @@ class LaunchProgress:
         if state == KeyStatus.RUNNING:
             self._at[key] = self.steps[key] = from_step
             self._starting.add(key)
-            self._started.add(key)
+            self._since.pop(key, None)
         elif state == Outcome.COMPLETED:
             self._advance(key, self.env_steps)
         elif state == KeyStatus.LEFT:
@@ -144,11 +143,12 @@ class LaunchProgress:
         is ``MIN_PACED_WORK`` predicted seconds of work."""
         if self._start is None:
             self._start = (now, self._advanced, self._predicted)
-        self._since.update(dict.fromkeys(self._started, now))
+        for key, state in self.states.items():
+            if state == KeyStatus.RUNNING:
+                self._since.setdefault(key, now)
         for key in self._reported:
-            self._busy += now - self._since.get(key, self._start[0])
+            self._busy += now - self._since.get(key, now)
             self._since[key] = now
-        self._started.clear()
         self._reported.clear()
         elapsed, done = now - self._start[0], self._advanced - self._start[1]
         rate = done / elapsed if elapsed > 0 else 0.0
