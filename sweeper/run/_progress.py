@@ -116,12 +116,17 @@ class LaunchProgress:
         self._advanced += step - at
         estimate = (self.estimates or {}).get(key)
         if estimate is not None:
-            self._predicted += estimate.until(step) - estimate.until(at)
-            if key in self._starting:  # the wall time to this report includes the start-up
-                self._predicted += estimate.until(0)
+            self._predicted += estimate.until(step) - self._counted(key, estimate)
         self._starting.discard(key)
         self._at[key] = step
         self._reported.add(key)
+
+    def _counted(self, key: str, estimate: TrialEstimate) -> float:
+        """Predicted seconds of ``key``'s trial counted so far: up to its step counted last,
+        less its start-up while that is still to be counted (the wall time to its first
+        report includes it)."""
+        counted = estimate.until(self._at.get(key, 0))
+        return counted - estimate.until(0) if key in self._starting else counted
 
     def work(self) -> float:
         """Env steps done so far, over all keys (those done before this launch too)."""
@@ -143,9 +148,6 @@ class LaunchProgress:
         is ``MIN_PACED_WORK`` predicted seconds of work."""
         if self._start is None:
             self._start = (now, self._advanced, self._predicted)
-        for key, state in self.states.items():
-            if state == KeyStatus.RUNNING:
-                self._since.setdefault(key, now)
         for key in self._reported:
             self._busy += now - self._since.get(key, now)
             self._since[key] = now
@@ -164,10 +166,9 @@ class LaunchProgress:
             if estimate is None:
                 continue
             if state == KeyStatus.RUNNING:
-                rest = estimate.seconds - estimate.until(self._at.get(key, 0))
-                if key in self._starting:
-                    rest += estimate.until(0)
-                busy.append(max(0.0, rest * pace - (now - self._since.get(key, now))))
+                rest = estimate.seconds - self._counted(key, estimate)
+                since = self._since.setdefault(key, now)
+                busy.append(max(0.0, rest * pace - (now - since)))
             elif state == KeyStatus.LEFT:
                 left.append(estimate.seconds * pace)
         return rate, makespan(left, self.workers, busy[: self.workers])
