@@ -243,6 +243,27 @@ def test_the_launch_eta_counts_the_start_up_and_runs_down_between_reports():
     assert progress.eta(now=1300.0)[1] == pytest.approx(6500 * 1200 / 700 - 100)
 
 
+def test_a_measured_trial_s_seconds_lie_in_its_policy_steps_not_its_seed_phase():
+    """A method's measured trial time carries no part costs: spread over all its steps, a
+    1/2 trial's seed phase (1,000 random steps in 50 s) made the ETA say 5 min where 1 h
+    35 min were left, then 51 min at its next report."""
+    from sweeper.plan._estimate import TrialEstimate
+    from sweeper.run._progress import LaunchProgress
+
+    config = TrialConfig(total_steps=15000, seed_steps=1000, eval_every=1000, eval_episodes=1)
+    estimate = TrialEstimate(7000.0, "measured", config)  # 500 s per 1,000 policy steps
+    assert [estimate.until(s) for s in (0, 1000, 2000, 15000, 16000)] == [0, 0, 500, 7000, 7000]
+    progress = LaunchProgress("s", ["a/0/0"], 15000, estimates={"a/0/0": estimate})
+    progress.set_state("a/0/0", "running")
+    assert progress.eta(now=0.0)[1] == pytest.approx(7000)
+    progress.set_step("a/0/0", 1000)  # the seed phase: no pace yet, the trial still ahead
+    assert progress.eta(now=50.0)[1] == pytest.approx(7000)
+    progress.set_step("a/0/0", 2000)  # 1,000 policy steps in 450 s (and 50 s before them)
+    assert progress.eta(now=500.0)[1] == pytest.approx(6500 * 500 / 500)
+    progress.set_step("a/0/0", 3000)  # then twice as slow
+    assert progress.eta(now=1500.0)[1] == pytest.approx(6000 * 1500 / 1000)
+
+
 def test_a_resumed_trial_s_steps_before_its_checkpoint_are_not_the_launch_s_pace():
     """A trial resumed from its checkpoint at step 12,000 first reports its curve up to
     there again: neither the rate nor the pace counts those steps (they made a relaunched
@@ -278,8 +299,8 @@ def test_halving_seconds_count_each_rung_s_trials():
     entries = [
         types.SimpleNamespace(key=f"{m}/{c}/0", method=m, seed=0) for m in "ab" for c in range(3)
     ]
-    # measured: 400 s a trial, spread evenly, so 1 s per env step
-    estimates = {e.key: TrialEstimate(400.0, "measured", config) for e in entries}
+    # measured: 300 s a trial, spread over its 300 policy steps, so 1 s per step after 100
+    estimates = {e.key: TrialEstimate(300.0, "measured", config) for e in entries}
     schedule = Schedule(stops=(200, 300, 400), sizes=(3, 2, 1), keep=0.5, rule="per_method")
-    # per method: 3 x 200 + 2 x 100 + 1 x 100 = 900 s, of 1200 without halving
-    assert halving_seconds(entries, estimates, schedule) == pytest.approx(2 * 900)
+    # per method: 3 x 100 + 2 x 100 + 1 x 100 = 600 s, of 900 without halving
+    assert halving_seconds(entries, estimates, schedule) == pytest.approx(2 * 600)
