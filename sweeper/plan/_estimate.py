@@ -94,9 +94,8 @@ class TrialEstimate:
         trial's seed phase (1,000 steps in 50 s) made the ETA say 5 min for 1 h 35 min."""
         if self.costs is not None:
             return self.costs.seconds(self.config, step)
-        total, seed = self.config.total_steps, min(self.config.seed_steps, self.config.total_steps)
-        if seed == total:
-            return self.seconds * min(step, total) / total
+        total = self.config.total_steps
+        seed = self.config.seed_steps if self.config.seed_steps < total else 0  # all seed: evenly
         return self.seconds * max(0, min(step, total) - seed) / (total - seed)
 
 
