@@ -170,6 +170,33 @@ def test_sweeper_plan_calibrates_a_new_study_and_measures_a_launched_one(
     assert "left: 0 of 2 trials" in out and "calibrated in" not in out
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_at_more_than_one_thread_a_trial_the_launch_calibrates_before_ray_starts(
+    tmp_path, monkeypatch, capsys, threads
+):
+    """At one thread a trial the calibration overlaps Ray's start; at more it is done first:
+    two torch threads on two cores beside Ray starting timed a trial nearly twice as long."""
+    import threading
+
+    from sweeper import cli
+    from sweeper.plan._estimate import InBackground
+    from sweeper.run import _launch as launcher
+
+    calibrating = []
+
+    def unreachable_ray(*args, **kwargs):
+        names = [t.name for t in threading.enumerate()]
+        calibrating.append(InBackground.THREAD_NAME in names)
+        raise ConnectionError("no Ray here")
+
+    monkeypatch.setattr(launcher, "start_ray", unreachable_ray)
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    argv = ["launch", str(CI_SPEC), "--storage", url, "--threads-per-trial", str(threads)]
+    assert cli.main(argv) == 2
+    assert "cannot reach local Ray: no Ray here" in capsys.readouterr().err
+    assert calibrating == [threads == 1]
+
+
 def test_the_summary_counts_what_is_left_and_warns_past_a_day_of_cpu():
     from sweeper.plan._entries import build_plan
     from sweeper.plan._estimate import TrialEstimate, summary_lines
