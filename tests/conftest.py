@@ -186,6 +186,19 @@ def ci_aggregate(ci_study: CIStudy) -> Path:
     return ci_study.workdir / "runs" / "ci" / "aggregate"
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """``./run tests`` spreads the tests over two processes (``-n 2 --dist loadgroup``): the
+    tests of the CI study run on one worker, so it is launched once, and a module's tests
+    that share a module fixture (a local Ray) stay together, so it is started once."""
+    for item in items:
+        fixtures = item._fixtureinfo.name2fixturedefs
+        if {"ci_study", "ci_aggregate"} & set(fixtures):
+            item.add_marker(pytest.mark.xdist_group("ci_study"))
+        elif any(defs[-1].scope == "module" for defs in fixtures.values()):
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+
+
 @pytest.fixture(scope="module")
 def local_ray():
     """One local Ray for a module, its address returned: in-process drivers (``launch``)
