@@ -190,13 +190,21 @@ def ci_aggregate(ci_study: CIStudy) -> Path:
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """``./run tests`` spreads the tests over two processes (``-n 2 --dist loadgroup``): the
     tests of the CI study run on one worker, so it is launched once, and a module's tests
-    that share a module fixture (a local Ray) stay together, so it is started once."""
+    that share a module fixture (a local Ray) stay together, so it is started once: with
+    the CI study's tests where their module has some."""
+
+    def uses_ci_study(item: pytest.Item) -> bool:
+        return bool({"ci_study", "ci_aggregate"} & set(item._fixtureinfo.name2fixturedefs))
+
+    with_ci_study = {item.module.__name__ for item in items if uses_ci_study(item)}
     for item in items:
         fixtures = item._fixtureinfo.name2fixturedefs
-        if {"ci_study", "ci_aggregate"} & set(fixtures):
+        module = item.module.__name__
+        if uses_ci_study(item):
             item.add_marker(pytest.mark.xdist_group("ci_study"))
         elif any(defs[-1].scope == "module" for defs in fixtures.values()):
-            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+            group = "ci_study" if module in with_ci_study else module
+            item.add_marker(pytest.mark.xdist_group(group))
 
 
 @pytest.fixture(scope="module")
