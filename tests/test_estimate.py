@@ -169,6 +169,15 @@ def test_sweeper_plan_calibrates_a_new_study_and_measures_a_launched_one(
     assert rows["pixel"][3] == "1" and rows["pixel"][-2:] == ["(1", "finished)"]
     assert "left: 0 of 2 trials" in out and "calibrated in" not in out
 
+    # at launch's overrides: the trials measured at 1 thread say nothing of 2 threads
+    argv = ["plan", str(ci_study.spec), "--storage", ci_study.storage_url]
+    assert cli.main([*argv, "--threads-per-trial", "2", "--max-concurrent", "1"]) == 0
+    out = capsys.readouterr().out
+    table = out.split("gradient samples per env step")[0]
+    rows = {line.split()[0]: line.split() for line in table.splitlines() if line}
+    assert rows["pixel"][3] == "1" and rows["pixel"][-1] == "calibrated"
+    assert "1 trial at once" in out and "2 threads a trial" in out
+
 
 @pytest.mark.parametrize("threads", [1, 2])
 def test_at_more_than_one_thread_a_trial_the_launch_calibrates_before_ray_starts(

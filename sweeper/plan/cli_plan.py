@@ -27,7 +27,7 @@ from sweeper.plan._estimate import (
     summary_lines,
 )
 from sweeper.plan._halving import env_steps_spent
-from sweeper.spec import plural
+from sweeper.spec import plural, positive_int
 from sweeper.storage import (
     NoStudy,
     check_plan,
@@ -42,8 +42,21 @@ if TYPE_CHECKING:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """``sweeper plan`` has no options of its own (``sweeper.cli`` adds the spec and
-    --storage)."""
+    """Options of ``sweeper plan`` (the spec and ``--storage`` come from ``sweeper.cli``):
+    ``sweeper launch``'s execution overrides, so the estimate is the launch's."""
+    parser.add_argument(
+        "--max-concurrent",
+        metavar="N",
+        type=positive_int,
+        help="trials at once, overriding the spec's execution.max_concurrent",
+    )
+    parser.add_argument(
+        "--threads-per-trial",
+        metavar="N",
+        type=positive_int,
+        help="torch threads of each trial, overriding the spec's execution.threads_per_trial: "
+        "trials measured at these threads are taken, the others calibrated at them",
+    )
 
 
 def plan_lines(
@@ -186,6 +199,9 @@ def run(spec: StudySpec, args: argparse.Namespace, stream: TextIO | None = None)
     cannot be read or was launched with another plan."""
     stream = sys.stdout if stream is None else stream
     try:
+        spec = spec.with_overrides(
+            max_concurrent=args.max_concurrent, threads_per_trial=args.threads_per_trial
+        )
         with open_for_reading(spec) as store:
             spec = stored_files(spec, store)  # a file path the study was launched with
             plan = build_plan(spec)
