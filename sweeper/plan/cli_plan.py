@@ -44,18 +44,13 @@ if TYPE_CHECKING:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``sweeper plan`` (the spec and ``--storage`` come from ``sweeper.cli``):
     ``sweeper launch``'s execution overrides, so the estimate is the launch's."""
-    parser.add_argument(
-        "--max-concurrent",
-        metavar="N",
-        type=positive_int,
-        help="trials at once, overriding the spec's execution.max_concurrent",
-    )
+    parser.add_argument("--max-concurrent", metavar="N", type=positive_int, help="trials at once")
     parser.add_argument(
         "--threads-per-trial",
         metavar="N",
         type=positive_int,
-        help="torch threads of each trial, overriding the spec's execution.threads_per_trial: "
-        "trials measured at these threads are taken, the others calibrated at them",
+        help="as `sweeper launch --threads-per-trial`: trials measured at these threads are "
+        "taken, the others calibrated at them",
     )
 
 
