@@ -94,14 +94,12 @@ def prepare(
     """
     if not isinstance(spec, StudySpec):
         spec = load_spec(spec)
-    overrides = dict(
+    spec = spec.with_overrides(
         storage=storage,
         address=address,
         max_concurrent=max_concurrent,
         threads_per_trial=threads_per_trial,
     )
-    if any(value is not None for value in overrides.values()):
-        spec = spec.with_overrides(**overrides)
     plan = build_plan(spec)
     check_storage(spec.storage_url)
     return spec, plan

@@ -545,9 +545,12 @@ class StudySpec(StrictModel):
         max_concurrent: int | None = None,
         threads_per_trial: int | None = None,
     ) -> StudySpec:
-        """A copy with CLI overrides (None keeps the spec's value), validated again.
+        """A copy with CLI overrides (None keeps the spec's value), validated again; the spec
+        itself when there are none.
         ``threads_per_trial`` also reserves that many CPUs a trial (``cpus_per_trial``, if
         fewer): each thread needs a core, and Ray then never puts two trials on one."""
+        if (storage, address, max_concurrent, threads_per_trial) == (None, None, None, None):
+            return self
         data = self.model_dump(mode="json")
         execution = data["execution"]
         if storage is not None:
