@@ -147,6 +147,14 @@ def test_calibration_times_vgg_without_its_weights_file(monkeypatch, tmp_path):
         assert calibration.costs(config).seed_step > 0
 
 
+def plan_output(capsys) -> tuple[str, dict[str, list[str]]]:
+    """What ``sweeper plan`` printed, and its per-method table (above the gradient samples)
+    as each method's words: method, trials, env steps, done, the estimate and its source."""
+    out = capsys.readouterr().out
+    table = out.split("gradient samples per env step")[0]
+    return out, {line.split()[0]: line.split() for line in table.splitlines() if line}
+
+
 def test_sweeper_plan_calibrates_a_new_study_and_measures_a_launched_one(
     ci_study, capsys, tmp_path
 ):
@@ -154,27 +162,20 @@ def test_sweeper_plan_calibrates_a_new_study_and_measures_a_launched_one(
 
     fresh = f"sqlite:///{tmp_path / 'none.db'}"
     assert cli.main(["plan", str(ci_study.spec), "--storage", fresh]) == 0
-    out = capsys.readouterr().out
-    table = out.split("gradient samples per env step")[0]  # the per-method table above it
-    rows = {line.split()[0]: line.split() for line in table.splitlines() if line}
-    # method, trials, env steps, done, then the estimate and its source
+    out, rows = plan_output(capsys)
     assert rows["linear"][1:4] == ["1", "300", "0"] and rows["linear"][-1] == "calibrated"
     assert "left: 2 of 2 trials" in out and "calibrated in" in out
     assert not (tmp_path / "none.db").exists()  # read-only: no database made
 
-    assert cli.main(["plan", str(ci_study.spec), "--storage", ci_study.storage_url]) == 0
-    out = capsys.readouterr().out
-    table = out.split("gradient samples per env step")[0]
-    rows = {line.split()[0]: line.split() for line in table.splitlines() if line}
+    argv = ["plan", str(ci_study.spec), "--storage", ci_study.storage_url]
+    assert cli.main(argv) == 0
+    out, rows = plan_output(capsys)
     assert rows["pixel"][3] == "1" and rows["pixel"][-2:] == ["(1", "finished)"]
     assert "left: 0 of 2 trials" in out and "calibrated in" not in out
 
     # at launch's overrides: the trials measured at 1 thread say nothing of 2 threads
-    argv = ["plan", str(ci_study.spec), "--storage", ci_study.storage_url]
     assert cli.main([*argv, "--threads-per-trial", "2", "--max-concurrent", "1"]) == 0
-    out = capsys.readouterr().out
-    table = out.split("gradient samples per env step")[0]
-    rows = {line.split()[0]: line.split() for line in table.splitlines() if line}
+    out, rows = plan_output(capsys)
     assert rows["pixel"][3] == "1" and rows["pixel"][-1] == "calibrated"
     assert "1 trial at once" in out and "2 threads a trial" in out
 
